@@ -1,0 +1,1 @@
+"""Implicit-polynomial surface fitting with adaptive degree by incremental QR (Eqs. 19-22)."""

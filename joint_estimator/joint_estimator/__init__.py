@@ -1,0 +1,1 @@
+"""Joint parameters and corrected trajectories from two links' pose tracks (Eqs. 10-18), with automatic joint type selection."""

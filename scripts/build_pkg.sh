@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# build_pkg.sh PKG [PKG...]: colcon build of only the named packages (after editing setup.py or
+# adding data files; Python edits need no rebuild thanks to --symlink-install).
+set -euo pipefail
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+# shellcheck disable=SC1091
+. "$ROOT/.venv/bin/activate"
+export AMENT_PREFIX_PATH=$ROOT/.venv CMAKE_PREFIX_PATH=$ROOT/.venv
+cd "$ROOT"
+colcon --log-base "$ROOT/log" build --base-paths msgs stereo_manip_tools stereo_depth \
+  object_localizer contact_correction joint_estimator ip_modeler \
+  --build-base build --install-base install --symlink-install --packages-select "$@" \
+  --event-handlers console_direct- --cmake-args -DBUILD_TESTING=OFF

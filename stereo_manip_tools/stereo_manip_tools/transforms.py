@@ -1,0 +1,174 @@
+"""Rigid-transform and rotation helpers shared by every stereo_manip package (pure numpy).
+
+Conventions (REP 103): metres and radians; a pose is a 4x4 homogeneous matrix ``T`` that maps
+points from a child frame into a parent frame, ``p_parent = T[:3, :3] @ p_child + T[:3, 3]``.
+Quaternions follow ROS ``geometry_msgs/Quaternion`` order ``(x, y, z, w)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    'skew',
+    'rotation_about_axis',
+    'rotation_log',
+    'rotation_angle',
+    'is_rotation_matrix',
+    'nearest_rotation',
+    'make_transform',
+    'invert_transform',
+    'transform_points',
+    'quaternion_from_matrix',
+    'matrix_from_quaternion',
+    'minimal_rotation_between',
+    'check_transform',
+]
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Return the 3x3 cross-product matrix ``[v]x`` so that ``skew(v) @ w == cross(v, w)``."""
+    x, y, z = np.asarray(v, dtype=float).reshape(3)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def rotation_about_axis(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues' formula: rotation of ``angle`` [rad] about ``axis`` (normalised here), 3x3."""
+    a = np.asarray(axis, dtype=float).reshape(3)
+    n = np.linalg.norm(a)
+    if n == 0.0:
+        raise ValueError('rotation_about_axis: zero-length axis')
+    k = skew(a / n)
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+
+
+def rotation_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle [rad], shape (3,)) of a rotation matrix; angle in [0, pi]."""
+    R = np.asarray(R, dtype=float)
+    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(cos_theta))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-7:
+        return 0.5 * w
+    if np.pi - theta < 1e-4:
+        # near pi: the axis is the dominant column of (R + I) / 2 = a a^T (approximately)
+        B = (R + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(B)))
+        axis = B[:, i] / np.sqrt(max(B[i, i], 1e-300))
+        if np.dot(axis, w) < 0:
+            axis = -axis
+        return axis / np.linalg.norm(axis) * theta
+    return w * (theta / (2.0 * np.sin(theta)))
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle [rad] in [0, pi] of a rotation matrix (robust near 0 and pi)."""
+    return float(np.linalg.norm(rotation_log(R)))
+
+
+def is_rotation_matrix(R: np.ndarray, tol: float = 1e-6) -> bool:
+    """True when ``R`` is a finite 3x3 matrix with ``R^T R = I`` and ``det R = +1`` within tol."""
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        return False
+    return bool(np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol)
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """Closest rotation matrix to a 3x3 matrix in the Frobenius norm (SVD projection on SO(3))."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Build a 4x4 homogeneous transform from a 3x3 rotation and a translation [m] of shape (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (uses ``R^T``, not a general matrix inverse)."""
+    T = np.asarray(T, dtype=float)
+    R = T[:3, :3]
+    return make_transform(R.T, -R.T @ T[:3, 3])
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to points of shape (N, 3); returns shape (N, 3)."""
+    P = np.asarray(points, dtype=float)
+    return P @ T[:3, :3].T + T[:3, 3]
+
+
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a 3x3 rotation matrix (Shepperd)."""
+    R = np.asarray(R, dtype=float)
+    tr = np.trace(R)
+    cands = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
+    i = int(np.argmax(cands))
+    if i == 0:
+        s = np.sqrt(1.0 + tr) * 2.0
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    elif i == 1:
+        s = np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2.0
+        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif i == 2:
+        s = np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2.0
+        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2.0
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix of a quaternion ``(x, y, z, w)``; raises ValueError if not normalisable.
+    """
+    q = np.asarray(q, dtype=float).reshape(4)
+    n = np.linalg.norm(q)
+    if not np.isfinite(n) or n < 1e-9:
+        raise ValueError(f'quaternion {q.tolist()} is zero or not finite')
+    x, y, z, w = q / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def minimal_rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest-angle rotation taking direction ``a`` onto direction ``b`` (both shape (3,)).
+
+    The axis is ``a x b``; for antiparallel vectors any axis perpendicular to ``a`` is used.
+    """
+    a = np.asarray(a, dtype=float) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=float) / np.linalg.norm(b)
+    c = np.cross(a, b)
+    s = np.linalg.norm(c)
+    d = float(np.clip(np.dot(a, b), -1.0, 1.0))
+    if s < 1e-12:
+        if d > 0:
+            return np.eye(3)
+        perp = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(perp) < 1e-6:
+            perp = np.cross(a, [0.0, 1.0, 0.0])
+        return rotation_about_axis(perp, np.pi)
+    return rotation_about_axis(c, np.arctan2(s, d))
+
+
+def check_transform(T: np.ndarray, name: str = 'pose', tol: float = 1e-6) -> np.ndarray:
+    """Validate a 4x4 rigid transform; return it as float array or raise ValueError naming why."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f'{name}: expected a 4x4 transform, got shape {T.shape}')
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f'{name}: contains NaN or infinite values')
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f'{name}: last row is {T[3].tolist()}, not [0, 0, 0, 1]')
+    if not is_rotation_matrix(T[:3, :3], tol):
+        raise ValueError(f'{name}: rotation block is not orthonormal with det +1 (tol {tol})')
+    return T
