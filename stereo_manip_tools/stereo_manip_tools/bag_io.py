@@ -1,0 +1,178 @@
+"""rosbag2 reading and writing on ``rosbags`` (no rosbag2 install needed), shared by every tool.
+
+Bags are written in rosbag2 format (mcap storage by default, Jazzy's default; sqlite3 on
+request), so ``ros2 bag play`` replays them on a real ROS install. Messages are kept as the CDR
+bytes rclpy sends and receives, so nothing is (de)serialised twice. Types that the Jazzy type
+store lacks (our ``stereo_manip_msgs``) are registered from the ``.msg`` files the installed
+interface packages ship.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import importlib
+import os
+from pathlib import Path
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
+
+__all__ = [
+    'BagError',
+    'get_message_class',
+    'make_typestore',
+    'BagMessage',
+    'BagWriter',
+    'read_bag',
+    'bag_summary',
+]
+
+
+class BagError(RuntimeError):
+    """A bag or topic problem with a message meant for the user (no traceback needed)."""
+
+
+def get_message_class(type_name: str) -> Any:
+    """Python class of a ROS interface type such as ``sensor_msgs/msg/Image``.
+
+    :raises BagError: malformed name or the interface package is not installed.
+    """
+    parts = type_name.split('/')
+    if len(parts) == 2:
+        parts = [parts[0], 'msg', parts[1]]
+    if len(parts) != 3 or not all(parts):
+        raise BagError(f'malformed message type {type_name!r} (expected pkg/msg/Name)')
+    pkg, kind, name = parts
+    try:
+        module = importlib.import_module(f'{pkg}.{kind}')
+        return getattr(module, name)
+    except (ImportError, AttributeError) as exc:
+        raise BagError(f'unknown message type {type_name!r}: interface package {pkg!r} has no '
+                       f'{kind} {name!r} installed') from exc
+
+
+def _share_msg_files(package: str) -> List[Path]:
+    from ament_index_python.packages import get_package_share_directory
+
+    share = Path(get_package_share_directory(package))
+    return sorted((share / 'msg').glob('*.msg'))
+
+
+def make_typestore(extra_packages: Sequence[str] = ('stereo_manip_msgs',)) -> Any:
+    """The ROS 2 Jazzy type store plus every message of ``extra_packages`` (from share/*/msg)."""
+    from rosbags.typesys import get_types_from_msg, get_typestore, Stores
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for package in extra_packages:
+        try:
+            files = _share_msg_files(package)
+        except Exception:  # noqa: BLE001 - package not built: its types are simply unknown
+            continue
+        types: Dict[str, Any] = {}
+        for f in files:
+            types.update(get_types_from_msg(f.read_text(), f'{package}/msg/{f.stem}'))
+        store.register(types)
+    return store
+
+
+@dataclass
+class BagMessage:
+    """One message of a bag: topic, type name, receive time [ns], CDR bytes."""
+
+    topic: str
+    msgtype: str
+    timestamp: int
+    data: bytes
+
+
+class BagWriter:
+    """Write CDR messages to a new rosbag2 bag (``storage``: ``'mcap'`` or ``'sqlite3'``)."""
+
+    def __init__(self, path: os.PathLike | str, storage: str = 'mcap',
+                 typestore: Any = None) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        plugins = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
+        if storage not in plugins:
+            raise BagError(f'unknown storage {storage!r}; use mcap or sqlite3')
+        self.path = Path(path)
+        if self.path.exists():
+            raise BagError(f'output bag {self.path} already exists')
+        self.typestore = typestore if typestore is not None else make_typestore()
+        self._writer = Writer(self.path, version=9, storage_plugin=plugins[storage])
+        self._writer.open()
+        self._connections: Dict[str, Any] = {}
+        self.counts: Dict[str, int] = {}
+
+    def add_topic(self, topic: str, msgtype: str) -> None:
+        """Declare a topic; raises BagError if the type is unknown to the type store."""
+        if topic in self._connections:
+            return
+        if msgtype not in self.typestore.types:
+            raise BagError(f'topic {topic}: type {msgtype!r} is unknown to the bag type store')
+        self._connections[topic] = self._writer.add_connection(topic, msgtype,
+                                                               typestore=self.typestore)
+        self.counts[topic] = 0
+
+    def write(self, topic: str, timestamp_ns: int, data: bytes) -> None:
+        """Append one CDR-serialised message received at ``timestamp_ns``."""
+        self._writer.write(self._connections[topic], int(timestamp_ns), bytes(data))
+        self.counts[topic] += 1
+
+    def close(self) -> None:
+        """Finish the bag (writes metadata.yaml)."""
+        self._writer.close()
+
+    def __enter__(self) -> 'BagWriter':
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def _open_reader(path: os.PathLike | str) -> Any:
+    from rosbags.rosbag2 import Reader
+
+    p = Path(path)
+    if not p.exists():
+        raise BagError(f'bag {p} does not exist')
+    if not (p / 'metadata.yaml').is_file():
+        raise BagError(f'{p} is not a rosbag2 bag (no metadata.yaml in it)')
+    try:
+        reader = Reader(p)
+        reader.open()
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several types for bad bags
+        raise BagError(f'{p} is not a readable rosbag2 bag: {exc}') from exc
+    return reader
+
+
+def read_bag(path: os.PathLike | str, topics: Optional[Sequence[str]] = None
+             ) -> Iterator[BagMessage]:
+    """Messages of a bag in time order, optionally only ``topics``.
+
+    :raises BagError: missing path, not a bag, or a requested topic is absent.
+    """
+    reader = _open_reader(path)
+    try:
+        available = {c.topic for c in reader.connections}
+        if topics:
+            missing = sorted(set(topics) - available)
+            if missing:
+                raise BagError(f'topic(s) {", ".join(missing)} not in bag; it has: '
+                               + ', '.join(sorted(available)))
+        conns = [c for c in reader.connections if not topics or c.topic in topics]
+        for conn, timestamp, data in reader.messages(connections=conns):
+            yield BagMessage(conn.topic, conn.msgtype, int(timestamp), bytes(data))
+    finally:
+        reader.close()
+
+
+def bag_summary(path: os.PathLike | str) -> Tuple[Dict[str, Tuple[str, int]], int, int]:
+    """``({topic: (type, count)}, start_ns, end_ns)`` of a bag."""
+    reader = _open_reader(path)
+    try:
+        out: Dict[str, Tuple[str, int]] = {}
+        for c in reader.connections:
+            t, n = out.get(c.topic, (c.msgtype, 0))
+            out[c.topic] = (t, n + c.msgcount)
+        return out, int(reader.start_time), int(reader.end_time)
+    finally:
+        reader.close()

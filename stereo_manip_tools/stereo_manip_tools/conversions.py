@@ -1,0 +1,391 @@
+"""Conversions between ROS messages and numpy arrays, shared by every node (no rclpy needed).
+
+Images (``sensor_msgs/Image``) <-> ``(H, W)`` or ``(H, W, C)`` arrays; point clouds
+(``sensor_msgs/PointCloud2``) <-> ``(N, k)`` float arrays; poses (``geometry_msgs/Pose``,
+``PoseStamped``, ``Transform``, ``nav_msgs/Path``) <-> 4x4 homogeneous matrices (metres);
+stamps <-> integer nanoseconds; ``CameraInfo`` <-> the stereo parameters a matcher needs.
+Every function validates its input and raises ``ValueError`` naming what is wrong.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import sys
+from typing import Iterable, Optional, Sequence, Tuple
+
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, Vector3
+from nav_msgs.msg import Path
+import numpy as np
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from std_msgs.msg import Header
+
+from stereo_manip_tools.transforms import matrix_from_quaternion, quaternion_from_matrix
+
+__all__ = [
+    'IMAGE_ENCODINGS',
+    'stamp_to_ns',
+    'ns_to_stamp',
+    'image_to_numpy',
+    'numpy_to_image',
+    'pointcloud2_to_array',
+    'xyz_to_pointcloud2',
+    'pose_to_matrix',
+    'matrix_to_pose',
+    'transform_to_matrix',
+    'matrix_to_transform',
+    'pose_stamped_to_matrix',
+    'matrix_to_pose_stamped',
+    'path_to_matrices',
+    'matrices_to_path',
+    'vector3_to_numpy',
+    'numpy_to_vector3',
+    'point_to_numpy',
+    'numpy_to_point',
+    'StereoCameraParameters',
+    'stereo_parameters_from_camera_info',
+    'camera_info_from_parameters',
+]
+
+# encoding -> (numpy dtype, channels)
+IMAGE_ENCODINGS = {
+    'mono8': (np.uint8, 1), '8UC1': (np.uint8, 1),
+    'mono16': (np.uint16, 1), '16UC1': (np.uint16, 1),
+    'rgb8': (np.uint8, 3), 'bgr8': (np.uint8, 3), '8UC3': (np.uint8, 3),
+    'rgba8': (np.uint8, 4), 'bgra8': (np.uint8, 4), '8UC4': (np.uint8, 4),
+    '32FC1': (np.float32, 1), '32FC3': (np.float32, 3), '64FC1': (np.float64, 1),
+    '16SC1': (np.int16, 1), '32SC1': (np.int32, 1),
+}
+
+_POINTFIELD_DTYPES = {
+    PointField.INT8: np.int8, PointField.UINT8: np.uint8, PointField.INT16: np.int16,
+    PointField.UINT16: np.uint16, PointField.INT32: np.int32, PointField.UINT32: np.uint32,
+    PointField.FLOAT32: np.float32, PointField.FLOAT64: np.float64,
+}
+
+
+# --- stamps -------------------------------------------------------------------------------
+
+def stamp_to_ns(stamp: Time) -> int:
+    """``builtin_interfaces/Time`` to integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int) -> Time:
+    """Integer nanoseconds to ``builtin_interfaces/Time``."""
+    ns = int(ns)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+# --- images -------------------------------------------------------------------------------
+
+def image_to_numpy(msg: Image) -> np.ndarray:
+    """Decode a ``sensor_msgs/Image`` to an array of shape (H, W) or (H, W, C), copied.
+
+    Row padding (``step``) and byte order are honoured; channel order is kept as encoded.
+
+    :raises ValueError: unsupported encoding, or ``data`` too short for height x step.
+    """
+    if msg.encoding not in IMAGE_ENCODINGS:
+        raise ValueError(f'unsupported image encoding {msg.encoding!r}; supported: '
+                         + ', '.join(sorted(IMAGE_ENCODINGS)))
+    dtype, channels = IMAGE_ENCODINGS[msg.encoding]
+    dt = np.dtype(dtype).newbyteorder('>' if msg.is_bigendian else '<')
+    row_bytes = msg.width * channels * dt.itemsize
+    if msg.step < row_bytes:
+        raise ValueError(f'image step {msg.step} < width*channels*itemsize = {row_bytes}')
+    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, (bytes, bytearray))
+                         else msg.data, dtype=np.uint8)
+    if data.size < msg.height * msg.step:
+        raise ValueError(f'image data has {data.size} bytes, expected height*step = '
+                         f'{msg.height * msg.step}')
+    rows = data[:msg.height * msg.step].reshape(msg.height, msg.step)[:, :row_bytes]
+    arr = np.ascontiguousarray(rows).view(dt).astype(dt.newbyteorder('='), copy=True)
+    shape = (msg.height, msg.width) if channels == 1 else (msg.height, msg.width, channels)
+    return arr.reshape(shape)
+
+
+def numpy_to_image(array: np.ndarray, encoding: str, header: Optional[Header] = None) -> Image:
+    """Encode an array of shape (H, W) or (H, W, C) as a ``sensor_msgs/Image``.
+
+    :raises ValueError: encoding unknown or not matching the array's dtype/channels.
+    """
+    if encoding not in IMAGE_ENCODINGS:
+        raise ValueError(f'unsupported image encoding {encoding!r}')
+    dtype, channels = IMAGE_ENCODINGS[encoding]
+    arr = np.asarray(array)
+    got_channels = 1 if arr.ndim == 2 else (arr.shape[2] if arr.ndim == 3 else -1)
+    if got_channels != channels:
+        raise ValueError(f'encoding {encoding} needs {channels} channel(s), array shape is '
+                         f'{arr.shape}')
+    if arr.dtype != np.dtype(dtype):
+        raise ValueError(f'encoding {encoding} needs dtype {np.dtype(dtype)}, got {arr.dtype}')
+    arr = np.ascontiguousarray(arr)
+    msg = Image()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = int(arr.shape[0]), int(arr.shape[1])
+    msg.encoding = encoding
+    msg.is_bigendian = int(sys.byteorder == 'big')
+    msg.step = int(arr.shape[1] * channels * arr.dtype.itemsize)
+    msg.data = arr.tobytes()
+    return msg
+
+
+# --- point clouds -------------------------------------------------------------------------
+
+def pointcloud2_to_array(msg: PointCloud2, fields: Sequence[str] = ('x', 'y', 'z'), *,
+                         skip_nans: bool = True) -> np.ndarray:
+    """Read the named fields of a ``PointCloud2`` into a float64 array of shape (N, len(fields)).
+
+    A field named ``rgb``/``rgba`` packed in a float32 is unpacked to three columns r, g, b
+    (0-255). With ``skip_nans`` rows with a non-finite x/y/z are dropped.
+
+    :raises ValueError: a requested field is absent, or the data is shorter than declared.
+    """
+    by_name = {f.name: f for f in msg.fields}
+    n = msg.width * msg.height
+    if len(msg.data) < n * msg.point_step:
+        raise ValueError(f'PointCloud2 data has {len(msg.data)} bytes, expected '
+                         f'{n * msg.point_step}')
+    raw = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    rows = raw[:n * msg.point_step].reshape(n, msg.point_step)
+    endian = '>' if msg.is_bigendian else '<'
+    cols = []
+    for name in fields:
+        if name not in by_name:
+            raise ValueError(f'PointCloud2 has no field {name!r}; fields: '
+                             + ', '.join(by_name))
+        f = by_name[name]
+        dt = np.dtype(_POINTFIELD_DTYPES[f.datatype]).newbyteorder(endian)
+        col = np.ascontiguousarray(rows[:, f.offset:f.offset + dt.itemsize]).view(dt)[:, 0]
+        if name in ('rgb', 'rgba'):
+            packed = np.ascontiguousarray(rows[:, f.offset:f.offset + 4]).view(
+                np.dtype(np.uint32).newbyteorder(endian))[:, 0]
+            cols.extend([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255])
+        else:
+            cols.append(col)
+    out = np.stack([np.asarray(c, dtype=np.float64) for c in cols], axis=1) if cols else \
+        np.zeros((n, 0))
+    if skip_nans and all(k in by_name for k in 'xyz'):
+        xyz = pointcloud2_to_array(msg, ('x', 'y', 'z'), skip_nans=False) \
+            if tuple(fields[:3]) != ('x', 'y', 'z') else out[:, :3]
+        out = out[np.all(np.isfinite(xyz), axis=1)]
+    return out
+
+
+def xyz_to_pointcloud2(points: np.ndarray, header: Optional[Header] = None, *,
+                       rgb: Optional[np.ndarray] = None,
+                       normals: Optional[np.ndarray] = None) -> PointCloud2:
+    """Build an unorganised ``PointCloud2`` (float32 x, y, z [m]; optional packed rgb, normals).
+
+    :param points: shape (N, 3), metres, in ``header.frame_id``.
+    :param rgb: shape (N, 3) uint8-range colours, packed into a float32 ``rgb`` field.
+    :param normals: shape (N, 3) unit normals as ``normal_x/normal_y/normal_z``.
+    """
+    P = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    n = len(P)
+    names = ['x', 'y', 'z']
+    dtypes = [np.float32] * 3
+    cols = [P[:, 0], P[:, 1], P[:, 2]]
+    if rgb is not None:
+        c = np.asarray(rgb).reshape(-1, 3).astype(np.uint32)
+        if len(c) != n:
+            raise ValueError(f'rgb has {len(c)} rows for {n} points')
+        names.append('rgb')
+        dtypes.append(np.float32)
+        cols.append(((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).view(np.float32))
+    if normals is not None:
+        nm = np.asarray(normals, dtype=np.float32).reshape(-1, 3)
+        if len(nm) != n:
+            raise ValueError(f'normals has {len(nm)} rows for {n} points')
+        names += ['normal_x', 'normal_y', 'normal_z']
+        dtypes += [np.float32] * 3
+        cols += [nm[:, 0], nm[:, 1], nm[:, 2]]
+    structured = np.zeros(n, dtype=[(nm_, dt) for nm_, dt in zip(names, dtypes)])
+    for name, col in zip(names, cols):
+        structured[name] = col
+    msg = PointCloud2()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = 1, n
+    msg.fields = [PointField(name=name, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+                  for i, name in enumerate(names)]
+    msg.is_bigendian = sys.byteorder == 'big'
+    msg.point_step = 4 * len(names)
+    msg.row_step = msg.point_step * n
+    msg.is_dense = bool(np.all(np.isfinite(P)))
+    msg.data = structured.tobytes()
+    return msg
+
+
+# --- poses --------------------------------------------------------------------------------
+
+def vector3_to_numpy(v: Vector3) -> np.ndarray:
+    """``Vector3`` to shape (3,)."""
+    return np.array([v.x, v.y, v.z], dtype=float)
+
+
+def numpy_to_vector3(a: Iterable[float]) -> Vector3:
+    """Shape (3,) to ``Vector3``."""
+    x, y, z = (float(c) for c in a)
+    return Vector3(x=x, y=y, z=z)
+
+
+def point_to_numpy(p: Point) -> np.ndarray:
+    """``Point`` to shape (3,)."""
+    return np.array([p.x, p.y, p.z], dtype=float)
+
+
+def numpy_to_point(a: Iterable[float]) -> Point:
+    """Shape (3,) to ``Point``."""
+    x, y, z = (float(c) for c in a)
+    return Point(x=x, y=y, z=z)
+
+
+def _quat(q: Quaternion) -> np.ndarray:
+    return np.array([q.x, q.y, q.z, q.w], dtype=float)
+
+
+def pose_to_matrix(pose: Pose) -> np.ndarray:
+    """``geometry_msgs/Pose`` to a 4x4 transform (child -> parent).
+
+    :raises ValueError: zero or non-finite quaternion, non-finite position.
+    """
+    T = np.eye(4)
+    T[:3, :3] = matrix_from_quaternion(_quat(pose.orientation))
+    T[:3, 3] = point_to_numpy(pose.position)
+    if not np.all(np.isfinite(T)):
+        raise ValueError('pose has a non-finite position')
+    return T
+
+
+def matrix_to_pose(T: np.ndarray) -> Pose:
+    """4x4 transform to ``geometry_msgs/Pose`` (quaternion with w >= 0)."""
+    T = np.asarray(T, dtype=float)
+    x, y, z, w = quaternion_from_matrix(T[:3, :3])
+    return Pose(position=numpy_to_point(T[:3, 3]),
+                orientation=Quaternion(x=float(x), y=float(y), z=float(z), w=float(w)))
+
+
+def transform_to_matrix(tf: Transform) -> np.ndarray:
+    """``geometry_msgs/Transform`` to a 4x4 transform."""
+    T = np.eye(4)
+    T[:3, :3] = matrix_from_quaternion(_quat(tf.rotation))
+    T[:3, 3] = vector3_to_numpy(tf.translation)
+    return T
+
+
+def matrix_to_transform(T: np.ndarray) -> Transform:
+    """4x4 transform to ``geometry_msgs/Transform``."""
+    pose = matrix_to_pose(T)
+    return Transform(translation=numpy_to_vector3(T[:3, 3]), rotation=pose.orientation)
+
+
+def pose_stamped_to_matrix(msg: PoseStamped) -> Tuple[np.ndarray, int, str]:
+    """``PoseStamped`` to ``(T 4x4, stamp_ns, frame_id)``."""
+    return pose_to_matrix(msg.pose), stamp_to_ns(msg.header.stamp), msg.header.frame_id
+
+
+def matrix_to_pose_stamped(T: np.ndarray, header: Header) -> PoseStamped:
+    """4x4 transform and header to ``PoseStamped``."""
+    return PoseStamped(header=header, pose=matrix_to_pose(T))
+
+
+def path_to_matrices(path: Path) -> Tuple[np.ndarray, np.ndarray]:
+    """``nav_msgs/Path`` to ``(T (N, 4, 4), stamps_ns (N,) int64)``."""
+    Ts = np.array([pose_to_matrix(p.pose) for p in path.poses]).reshape(-1, 4, 4)
+    stamps = np.array([stamp_to_ns(p.header.stamp) for p in path.poses], dtype=np.int64)
+    return Ts, stamps
+
+
+def matrices_to_path(Ts: np.ndarray, frame_id: str, stamps_ns: Optional[Sequence[int]] = None
+                     ) -> Path:
+    """Transforms of shape (N, 4, 4) to a ``nav_msgs/Path``; stamps default to 0..N-1 ns."""
+    Ts = np.asarray(Ts, dtype=float).reshape(-1, 4, 4)
+    stamps = list(stamps_ns) if stamps_ns is not None else list(range(len(Ts)))
+    if len(stamps) != len(Ts):
+        raise ValueError(f'{len(stamps)} stamps for {len(Ts)} poses')
+    path = Path()
+    path.header.frame_id = frame_id
+    if len(Ts):
+        path.header.stamp = ns_to_stamp(stamps[-1])
+    path.poses = [matrix_to_pose_stamped(T, Header(stamp=ns_to_stamp(s), frame_id=frame_id))
+                  for T, s in zip(Ts, stamps)]
+    return path
+
+
+# --- stereo camera info -------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class StereoCameraParameters:
+    """Rectified stereo geometry read from a left/right ``CameraInfo`` pair.
+
+    :ivar fx, fy, cx, cy: left projection intrinsics [px].
+    :ivar baseline: distance between the optical centres [m] (> 0).
+    :ivar doffs: x-difference of the principal points, right minus left [px]
+        (``Z = fx * baseline / (d + cx_left - cx_right)`` in general; 0 for ROS-rectified pairs).
+    :ivar width, height: image size [px].
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline: float
+    width: int
+    height: int
+    doffs: float = 0.0
+
+    def depth_from_disparity(self, disparity: np.ndarray) -> np.ndarray:
+        """Depth [m] ``fx * B / (d + doffs)``; NaN where the disparity is not positive/finite."""
+        d = np.asarray(disparity, dtype=np.float64) + self.doffs
+        with np.errstate(divide='ignore', invalid='ignore'):
+            z = self.fx * self.baseline / d
+        z[~(d > 0)] = np.nan
+        return z.astype(np.float32)
+
+
+def stereo_parameters_from_camera_info(left: CameraInfo, right: CameraInfo
+                                       ) -> StereoCameraParameters:
+    """Stereo geometry from a rectified pair's ``CameraInfo`` (ROS convention P_r[3] = -fx*B).
+
+    :raises ValueError: zero focal length, zero/negative baseline, size mismatch.
+    """
+    Pl = np.asarray(left.p, dtype=float).reshape(3, 4)
+    Pr = np.asarray(right.p, dtype=float).reshape(3, 4)
+    fx, fy = Pl[0, 0], Pl[1, 1]
+    if not (fx > 0 and fy > 0):
+        raise ValueError(f'left CameraInfo has focal length fx={fx}, fy={fy} (P not set?)')
+    if Pr[0, 0] <= 0:
+        raise ValueError(f'right CameraInfo has focal length fx={Pr[0, 0]} (P not set?)')
+    baseline = -Pr[0, 3] / Pr[0, 0]
+    if not baseline > 0:
+        raise ValueError(f'baseline from right P[3] = {Pr[0, 3]} is {baseline} m; expected > 0 '
+                         '(ROS convention: right P[0,3] = -fx * B)')
+    if (left.width, left.height) != (right.width, right.height):
+        raise ValueError(f'left CameraInfo is {left.width}x{left.height}, right is '
+                         f'{right.width}x{right.height}')
+    return StereoCameraParameters(fx=float(fx), fy=float(fy), cx=float(Pl[0, 2]),
+                                  cy=float(Pl[1, 2]), baseline=float(baseline),
+                                  width=int(left.width), height=int(left.height),
+                                  doffs=float(Pl[0, 2] - Pr[0, 2]))
+
+
+def camera_info_from_parameters(params: StereoCameraParameters, header: Header
+                                ) -> Tuple[CameraInfo, CameraInfo]:
+    """Left and right ``CameraInfo`` of an ideal rectified pair (no distortion, R = I)."""
+    infos = []
+    for side in ('left', 'right'):
+        ci = CameraInfo()
+        ci.header = header
+        ci.width, ci.height = params.width, params.height
+        ci.distortion_model = 'plumb_bob'
+        ci.d = [0.0] * 5
+        cx = params.cx if side == 'left' else params.cx - params.doffs
+        ci.k = [params.fx, 0.0, cx, 0.0, params.fy, params.cy, 0.0, 0.0, 1.0]
+        ci.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        tx = 0.0 if side == 'left' else -params.fx * params.baseline
+        ci.p = [params.fx, 0.0, cx, tx, 0.0, params.fy, params.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+        infos.append(ci)
+    return infos[0], infos[1]

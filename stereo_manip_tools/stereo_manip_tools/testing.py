@@ -1,0 +1,208 @@
+"""Test harness shared by every package (a pytest plugin loaded by the root ``conftest.py``).
+
+- fixture ``ros_node``: an in-process rclpy node in its own ``Context``, destroyed after the test;
+- :func:`spin_until`, :func:`wait_for_message`, :func:`collect_messages`: spin until a condition
+  holds or a timeout expires (never forever);
+- :func:`start_executable`: start ``install/<pkg>/lib/<pkg>/<exe>`` as its own process, exactly
+  what ``ros2 run`` does, wait until its node is in the graph, and stop it with SIGINT at exit.
+
+The session's ``ROS_DOMAIN_ID`` is random and discovery is localhost-only (root conftest.py),
+so tests never see another session's graph.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import tempfile
+import time
+from typing import Any, Callable, Iterator, List, Optional, Sequence
+import uuid
+
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+__all__ = [
+    'ros_node',
+    'make_node',
+    'shutdown_node',
+    'spin_until',
+    'wait_for_message',
+    'collect_messages',
+    'executable_path',
+    'ExecutableProcess',
+    'start_executable',
+]
+
+
+def make_node(name: Optional[str] = None) -> Node:
+    """A node in a fresh rclpy Context (destroy with ``shutdown_node``)."""
+    context = Context()
+    rclpy.init(context=context)
+    return rclpy.create_node(name or f'test_{uuid.uuid4().hex[:8]}', context=context)
+
+
+def shutdown_node(node: Node) -> None:
+    """Destroy a node made by :func:`make_node` and shut its context down."""
+    context = node.context
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture
+def ros_node() -> Iterator[Node]:
+    """An in-process rclpy node with its own Context, for the duration of one test."""
+    node = make_node()
+    try:
+        yield node
+    finally:
+        shutdown_node(node)
+
+
+def spin_until(node: Node, predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
+    """Spin ``node`` until ``predicate()`` is true or ``timeout`` [s] expires; returns the result.
+    """
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                return bool(predicate())
+            executor.spin_once(timeout_sec=0.02)
+        return True
+    finally:
+        executor.remove_node(node)
+        executor.shutdown()
+
+
+def collect_messages(node: Node, msg_type: Any, topic: str, count: int, timeout: float = 10.0,
+                     qos: Any = 10) -> List[Any]:
+    """Subscribe to ``topic`` and return the first ``count`` messages (fewer on timeout)."""
+    received: List[Any] = []
+    sub = node.create_subscription(msg_type, topic, received.append, qos)
+    try:
+        spin_until(node, lambda: len(received) >= count, timeout)
+    finally:
+        node.destroy_subscription(sub)
+    return received[:count]
+
+
+def wait_for_message(node: Node, msg_type: Any, topic: str, timeout: float = 10.0,
+                     qos: Any = 10) -> Any:
+    """The first message on ``topic`` within ``timeout`` [s], or None."""
+    msgs = collect_messages(node, msg_type, topic, 1, timeout, qos)
+    return msgs[0] if msgs else None
+
+
+def executable_path(package: str, executable: str) -> Path:
+    """``<prefix of package>/lib/<package>/<executable>`` from the ament index (as ros2 run).
+
+    :raises FileNotFoundError: package not in the index or executable not installed.
+    """
+    from ament_index_python.packages import get_package_prefix
+
+    path = Path(get_package_prefix(package)) / 'lib' / package / executable
+    if not os.access(path, os.X_OK):
+        raise FileNotFoundError(f'no executable {executable!r} installed for {package!r} '
+                                f'(looked for {path})')
+    return path
+
+
+class ExecutableProcess:
+    """A package executable running as its own process; output captured to a temp file."""
+
+    def __init__(self, package: str, executable: str, args: Sequence[str] = (),
+                 ros_args: Sequence[str] = (), env: Optional[dict] = None) -> None:
+        self.command = [str(executable_path(package, executable)), *args]
+        if ros_args:
+            self.command += ['--ros-args', *ros_args]
+        self._log = tempfile.NamedTemporaryFile(prefix=f'{executable}_', suffix='.log',
+                                                delete=False)
+        full_env = dict(os.environ)
+        full_env.setdefault('PYTHONUNBUFFERED', '1')
+        full_env.update(env or {})
+        self.process = subprocess.Popen(self.command, stdout=self._log,
+                                        stderr=subprocess.STDOUT, env=full_env)
+
+    def output(self) -> str:
+        """Everything the process printed so far (stdout and stderr)."""
+        self._log.flush()
+        return Path(self._log.name).read_text(errors='replace')
+
+    def running(self) -> bool:
+        """True while the process has not exited."""
+        return self.process.poll() is None
+
+    def wait_for_node(self, observer: Node, node_name: str, timeout: float = 30.0) -> bool:
+        """Spin ``observer`` until ``node_name`` is in the graph (or the process died)."""
+        def seen() -> bool:
+            if not self.running():
+                return True
+            return node_name in [n for n, _ in observer.get_node_names_and_namespaces()]
+        spin_until(observer, seen, timeout)
+        return self.running() and node_name in [
+            n for n, _ in observer.get_node_names_and_namespaces()]
+
+    def wait_for_output(self, text: str, timeout: float = 30.0) -> bool:
+        """Wait until ``text`` appears in the output or the process exits."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in self.output():
+                return True
+            if not self.running():
+                return text in self.output()
+            time.sleep(0.05)
+        return False
+
+    def stop(self, timeout: float = 10.0) -> int:
+        """SIGINT (as Ctrl-C), then SIGKILL after ``timeout`` [s]; returns the exit code."""
+        if self.running():
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(5)
+        return self.process.returncode
+
+    def __enter__(self) -> 'ExecutableProcess':
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+        self._log.close()
+        try:
+            os.unlink(self._log.name)
+        except OSError:
+            pass
+
+
+def start_executable(package: str, executable: str, *args: str, ros_args: Sequence[str] = (),
+                     observer: Optional[Node] = None, wait_for_node: Optional[str] = None,
+                     timeout: float = 30.0, env: Optional[dict] = None) -> ExecutableProcess:
+    """Start an installed executable as its own process (``ros2 run`` semantics).
+
+    With ``wait_for_node`` (and an ``observer`` node to look at the graph) it waits until that
+    node appears and raises ``RuntimeError`` with the process output if it does not.
+    Use as a context manager so the process is always stopped.
+    """
+    proc = ExecutableProcess(package, executable, args, ros_args, env)
+    if wait_for_node is not None:
+        own = observer is None
+        obs = make_node() if own else observer
+        try:
+            ok = proc.wait_for_node(obs, wait_for_node, timeout)
+        finally:
+            if own:
+                shutdown_node(obs)
+        if not ok:
+            proc.stop()
+            raise RuntimeError(f'{package}/{executable}: node {wait_for_node!r} did not appear '
+                               f'within {timeout} s; output:\n{proc.output()}')
+    return proc
