@@ -166,13 +166,16 @@ def read_bag(path: os.PathLike | str, topics: Optional[Sequence[str]] = None
 
 
 def bag_summary(path: os.PathLike | str) -> Tuple[Dict[str, Tuple[str, int]], int, int]:
-    """``({topic: (type, count)}, start_ns, end_ns)`` of a bag."""
+    """``({topic: (type, count)}, first_ns, last_ns)``: per-topic counts, first/last stamps."""
     reader = _open_reader(path)
     try:
         out: Dict[str, Tuple[str, int]] = {}
         for c in reader.connections:
             t, n = out.get(c.topic, (c.msgtype, 0))
             out[c.topic] = (t, n + c.msgcount)
-        return out, int(reader.start_time), int(reader.end_time)
+        if not reader.message_count:
+            return out, 0, 0
+        # rosbags' end_time is one past the last message's timestamp
+        return out, int(reader.start_time), int(reader.end_time) - 1
     finally:
         reader.close()

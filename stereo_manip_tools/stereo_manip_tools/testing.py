@@ -37,6 +37,7 @@ __all__ = [
     'executable_path',
     'ExecutableProcess',
     'start_executable',
+    'fill_message',
 ]
 
 
@@ -206,3 +207,54 @@ def start_executable(package: str, executable: str, *args: str, ros_args: Sequen
             raise RuntimeError(f'{package}/{executable}: node {wait_for_node!r} did not appear '
                                f'within {timeout} s; output:\n{proc.output()}')
     return proc
+
+
+_INT_RANGES = {'int8': 127, 'uint8': 255, 'int16': 32767, 'uint16': 65535, 'int32': 2**31 - 1,
+               'uint32': 2**32 - 1, 'int64': 2**63 - 1, 'uint64': 2**64 - 1, 'octet': 255,
+               'char': 127, 'byte': 255}
+
+
+def fill_message(msg_class: Any, seed: int = 0, depth: int = 0) -> Any:
+    """A message of ``msg_class`` with every field set to a non-default pseudo-random value.
+
+    Sequences get 1-3 elements, nested messages are filled recursively, so a round trip that
+    drops or mangles any field shows up in ``==``.
+    """
+    import importlib
+    import random
+
+    rng = random.Random(seed * 7919 + depth)
+    msg = msg_class()
+
+    def value(type_name: str) -> Any:
+        base = type_name.split('<', 1)[-1].rstrip('>') if type_name.startswith('sequence<') \
+            else type_name
+        base = base.split('[')[0]
+        if base.startswith(('string', 'wstring')):
+            return f'{base}-{rng.randrange(10**6)}'
+        if base == 'boolean':
+            return True
+        if base in ('float', 'double', 'float32', 'float64'):
+            return rng.uniform(-100.0, 100.0) if base in ('double', 'float64') else \
+                float(int(rng.uniform(-100, 100) * 64) / 64)
+        if base in _INT_RANGES:
+            top = _INT_RANGES[base]
+            v = rng.randint(1, min(top, 10**6))
+            if base == 'byte' or base == 'octet':
+                return bytes([v % 256])
+            return v
+        pkg, name = base.split('/')
+        module = importlib.import_module(f'{pkg}.msg')
+        return fill_message(getattr(module, name), rng.randrange(10**6), depth + 1)
+
+    for field, type_name in msg_class.get_fields_and_field_types().items():
+        if type_name.startswith('sequence<'):
+            n = rng.randint(1, 3)
+            items = [value(type_name) for _ in range(n)]
+            setattr(msg, field, items)
+        elif type_name.endswith(']'):
+            size = int(type_name.split('[')[1].rstrip(']'))
+            setattr(msg, field, [value(type_name) for _ in range(size)])
+        else:
+            setattr(msg, field, value(type_name))
+    return msg

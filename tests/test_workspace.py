@@ -1,0 +1,49 @@
+"""The colcon build produced what `ros2 run` and the ament index need, for every package."""
+
+import ast
+import os
+from pathlib import Path
+
+from ament_index_python.packages import get_package_prefix, get_package_share_directory, \
+    get_packages_with_prefixes
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PYTHON_PACKAGES = ['stereo_manip_tools', 'stereo_depth', 'object_localizer',
+                   'contact_correction', 'joint_estimator', 'ip_modeler']
+
+
+def console_scripts(package: str):
+    """Executable names declared in the package's setup.py entry_points."""
+    tree = ast.parse((ROOT / package / 'setup.py').read_text())
+    names = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Dict):
+            for k, v in zip(node.keys, node.values):
+                if isinstance(k, ast.Constant) and k.value == 'console_scripts':
+                    names += [e.value.split('=')[0].strip() for e in v.elts]
+    return names
+
+
+def test_ament_index_finds_every_package():
+    found = get_packages_with_prefixes()
+    for pkg in PYTHON_PACKAGES + ['stereo_manip_msgs']:
+        assert pkg in found, f'{pkg} missing from the ament index'
+        assert (Path(get_package_share_directory(pkg)) / 'package.xml').is_file()
+
+
+@pytest.mark.parametrize('package', PYTHON_PACKAGES)
+def test_executables_installed_where_ros2_run_looks(package):
+    lib = Path(get_package_prefix(package)) / 'lib' / package
+    for exe in console_scripts(package):
+        path = lib / exe
+        assert path.is_file() and os.access(path, os.X_OK), f'{package}/{exe} not installed'
+
+
+def test_interface_package_ships_definitions():
+    share = Path(get_package_share_directory('stereo_manip_msgs'))
+    for name in ['ContactElement', 'ContactPair', 'ContactState', 'JointEstimate',
+                 'ImplicitPolynomial']:
+        assert (share / 'msg' / f'{name}.msg').is_file()
+    for name in ['CorrectTrajectory', 'EstimateJoint', 'FitImplicitPolynomial']:
+        assert (share / 'srv' / f'{name}.srv').is_file()
