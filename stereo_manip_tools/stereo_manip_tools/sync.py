@@ -1,0 +1,104 @@
+"""Stamp synchroniser: pairs messages from several streams by header stamp (pure Python).
+
+Replaces ``message_filters`` (not on PyPI). With ``tolerance_ns = 0`` it matches exact stamps
+(``TimeSynchronizer``); with a tolerance it matches the set whose stamps all lie within the
+tolerance of each other (``ApproximateTimeSynchronizer``, simplified: the newest complete set
+wins). Everything dropped is counted, by reason, in :attr:`StampSynchronizer.dropped`.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
+
+__all__ = ['StampSynchronizer']
+
+
+class StampSynchronizer:
+    """Group items from the streams ``keys`` that carry the same (or nearly the same) stamp.
+
+    :param keys: stream names, e.g. ``('left', 'right', 'left_info', 'right_info')``.
+    :param tolerance_ns: largest allowed stamp spread within a set [ns]; 0 = exact.
+    :param queue_size: items kept per stream while waiting for partners (older ones dropped).
+    """
+
+    def __init__(self, keys: Sequence[Hashable], tolerance_ns: int = 0,
+                 queue_size: int = 10) -> None:
+        if not keys:
+            raise ValueError('StampSynchronizer needs at least one stream key')
+        if tolerance_ns < 0:
+            raise ValueError(f'tolerance_ns must be >= 0, got {tolerance_ns}')
+        if queue_size < 1:
+            raise ValueError(f'queue_size must be >= 1, got {queue_size}')
+        self.keys = list(keys)
+        self.tolerance_ns = int(tolerance_ns)
+        self.queue_size = int(queue_size)
+        self._queues: Dict[Hashable, 'OrderedDict[int, Any]'] = {k: OrderedDict()
+                                                                 for k in self.keys}
+        self.dropped: Dict[str, int] = {'queue_overflow': 0, 'superseded': 0,
+                                        'older_than_last_match': 0}
+        self.matched = 0
+        self._last_match_ns: Optional[int] = None
+
+    def add(self, key: Hashable, stamp_ns: int, item: Any) -> Optional[Dict[Hashable, Any]]:
+        """Offer one item; returns ``{key: item}`` for every stream when a set is complete.
+
+        Items older than the last emitted set are dropped (counted), so output stamps are
+        strictly increasing.
+
+        :raises KeyError: ``key`` is not one of the streams.
+        """
+        if key not in self._queues:
+            raise KeyError(f'unknown stream {key!r}; streams: {self.keys}')
+        stamp_ns = int(stamp_ns)
+        if self._last_match_ns is not None and stamp_ns <= self._last_match_ns:
+            self.dropped['older_than_last_match'] += 1
+            return None
+        q = self._queues[key]
+        q[stamp_ns] = item
+        while len(q) > self.queue_size:
+            q.popitem(last=False)
+            self.dropped['queue_overflow'] += 1
+        return self._try_match()
+
+    def _try_match(self) -> Optional[Dict[Hashable, Any]]:
+        if any(not q for q in self._queues.values()):
+            return None
+        best: Optional[Tuple[int, Dict[Hashable, int]]] = None
+        # Candidate reference stamps: every stamp of the first stream, newest first.
+        ref_key = self.keys[0]
+        for ref in reversed(list(self._queues[ref_key])):
+            chosen: Dict[Hashable, int] = {ref_key: ref}
+            for k in self.keys[1:]:
+                stamps = list(self._queues[k])
+                nearest = min(stamps, key=lambda s: abs(s - ref))
+                if abs(nearest - ref) > self.tolerance_ns:
+                    break
+                chosen[k] = nearest
+            else:
+                spread = max(chosen.values()) - min(chosen.values())
+                if spread <= self.tolerance_ns:
+                    best = (ref, chosen)
+                    break
+        if best is None:
+            return None
+        _, chosen = best
+        newest = max(chosen.values())
+        out = {k: self._queues[k].pop(s) for k, s in chosen.items()}
+        for k, q in self._queues.items():
+            for s in [s for s in q if s <= newest]:
+                del q[s]
+                self.dropped['superseded'] += 1
+        self._last_match_ns = newest
+        self.matched += 1
+        return out
+
+    def pending(self) -> Dict[Hashable, List[int]]:
+        """Stamps waiting for partners, per stream."""
+        return {k: list(q) for k, q in self._queues.items()}
+
+    def reset(self) -> None:
+        """Forget waiting items and the last match (e.g. after a bag loops back in time)."""
+        for q in self._queues.values():
+            q.clear()
+        self._last_match_ns = None

@@ -1,0 +1,74 @@
+"""The stamp synchroniser pairs exactly or approximately and counts every drop."""
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+import pytest
+
+from stereo_manip_tools.sync import StampSynchronizer
+
+
+def test_exact_pairs_in_any_arrival_order():
+    sync = StampSynchronizer(['left', 'right', 'info'])
+    assert sync.add('right', 100, 'r1') is None
+    assert sync.add('info', 100, 'i1') is None
+    assert sync.add('left', 100, 'l1') == {'left': 'l1', 'right': 'r1', 'info': 'i1'}
+    assert sync.matched == 1
+
+
+def test_exact_mode_rejects_near_stamps():
+    sync = StampSynchronizer(['a', 'b'])
+    sync.add('a', 100, 1)
+    assert sync.add('b', 101, 2) is None
+
+
+def test_approximate_mode_pairs_within_tolerance():
+    sync = StampSynchronizer(['a', 'b'], tolerance_ns=5)
+    sync.add('a', 100, 'a100')
+    assert sync.add('b', 104, 'b104') == {'a': 'a100', 'b': 'b104'}
+    sync.add('a', 200, 'a200')
+    assert sync.add('b', 210, 'b210') is None
+
+
+def test_unmatched_older_items_are_counted_not_silently_lost():
+    sync = StampSynchronizer(['a', 'b'])
+    sync.add('a', 100, 'a100')          # its partner never comes
+    sync.add('a', 200, 'a200')
+    assert sync.add('b', 200, 'b200') == {'a': 'a200', 'b': 'b200'}
+    assert sync.dropped['superseded'] == 1
+    assert sync.add('b', 150, 'late') is None
+    assert sync.dropped['older_than_last_match'] == 1
+
+
+def test_queue_overflow_counted():
+    sync = StampSynchronizer(['a', 'b'], queue_size=2)
+    for s in (1, 2, 3):
+        sync.add('a', s, s)
+    assert sync.dropped['queue_overflow'] == 1 and sync.pending()['a'] == [2, 3]
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError):
+        StampSynchronizer([])
+    with pytest.raises(ValueError):
+        StampSynchronizer(['a'], tolerance_ns=-1)
+    with pytest.raises(KeyError, match='unknown stream'):
+        StampSynchronizer(['a']).add('b', 1, 1)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.integers(0, 50), min_size=1, max_size=30, unique=True), st.randoms())
+def test_every_common_stamp_matched_once_in_order(stamps, rnd):
+    """Streams carrying the same stamps, interleaved in random order but each stream in
+    increasing order, produce one set per stamp unless a partner arrives after a newer match."""
+    sync = StampSynchronizer(['a', 'b'], queue_size=100)
+    events = [('a', s) for s in sorted(stamps)] + [('b', s) for s in sorted(stamps)]
+    rnd.shuffle(events)
+    a = sorted([e for e in events if e[0] == 'a'], key=lambda e: e[1])
+    b = sorted([e for e in events if e[0] == 'b'], key=lambda e: e[1])
+    order = [a.pop(0) if (a and (not b or rnd.random() < 0.5)) else b.pop(0)
+             for _ in range(len(events))]
+    out = [m for k, s in order if (m := sync.add(k, s, (k, s))) is not None]
+    got = [m['a'][1] for m in out]
+    assert got == sorted(got) and all(m['a'][1] == m['b'][1] for m in out)
+    total_dropped = sum(sync.dropped.values())
+    assert len(out) * 2 + total_dropped == len(events)
