@@ -21,6 +21,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
+            'object_localizer_node = object_localizer.localizer_node:main',
         ],
     },
 )

@@ -1,0 +1,137 @@
+"""``object_localizer_node``: localises and tracks known models in ``points2``.
+
+Subscribes ``points2`` (sensor_msgs/PointCloud2, sensor-data QoS). For every model named in the
+``models`` parameter publishes ``objects/<name>/pose`` (PoseStamped, the cloud's frame and
+stamp) and ``objects/<name>/track`` (nav_msgs/Path of the recent poses).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+import sys
+from typing import Dict, List
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
+    ParameterType, SetParametersResult
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2
+
+from object_localizer.localization import prepare_model
+from object_localizer.tracking import ObjectTracker, TrackerSettings
+from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, \
+    pointcloud2_to_array, stamp_to_ns
+from stereo_manip_tools.mesh_io import find_model, load_obj
+
+__all__ = ['ObjectLocalizerNode', 'main']
+
+
+def _float(desc: str, lo: float, hi: float) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_DOUBLE, description=desc,
+                               floating_point_range=[FloatingPointRange(from_value=lo,
+                                                                        to_value=hi)])
+
+
+class ObjectLocalizerNode(Node):
+    """Thin ROS wrapper around :class:`object_localizer.tracking.ObjectTracker`."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('object_localizer', **kwargs)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.declare_parameter('models', ['peg'], ParameterDescriptor(
+            type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True,
+            description='model names (OBJ files found by stereo_manip_tools.mesh_io.find_model)'))
+        self.declare_parameter('voxel_size', 0.003, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE, read_only=True,
+            description='sampling resolution of model and scene [m]',
+            floating_point_range=[FloatingPointRange(from_value=0.0005, to_value=0.05)]))
+        self.declare_parameter('max_correspondence_distance', 0.01,
+                               _float('ICP correspondence radius [m]', 0.0005, 0.2))
+        self.declare_parameter('loss_scale', 0.0015,
+                               _float('Tukey M-estimator scale k [m]', 0.0002, 0.1))
+        self.declare_parameter('min_inlier_fraction', 0.5,
+                               _float('below it the object is searched globally / not found',
+                                      0.0, 1.0))
+        self.declare_parameter('track_length', 300, ParameterDescriptor(
+            type=ParameterType.PARAMETER_INTEGER, description='poses kept in each track',
+            integer_range=[IntegerRange(from_value=1, to_value=100000)]))
+        voxel = self.get_parameter('voxel_size').value
+        self.trackers: Dict[str, ObjectTracker] = {}
+        self.pose_pubs = {}
+        self.track_pubs = {}
+        for name in self.get_parameter('models').value:
+            mesh = load_obj(find_model(name))
+            self.trackers[name] = ObjectTracker(prepare_model(mesh, voxel), self._settings())
+            self.pose_pubs[name] = self.create_publisher(PoseStamped, f'objects/{name}/pose', 10)
+            self.track_pubs[name] = self.create_publisher(Path, f'objects/{name}/track', 10)
+        self.counts = {'received': 0, 'rejected': 0, 'not_found': 0}
+        self.create_subscription(PointCloud2, 'points2', self._on_cloud, qos_profile_sensor_data)
+        self.get_logger().info(f'localising {", ".join(self.trackers)} in points2')
+
+    _SETTING_OF_PARAMETER = {'max_correspondence_distance': 'max_distance',
+                             'loss_scale': 'loss_scale',
+                             'min_inlier_fraction': 'min_inlier_fraction',
+                             'track_length': 'max_history'}
+
+    def _settings(self) -> TrackerSettings:
+        return TrackerSettings(**{field: self.get_parameter(name).value
+                                  for name, field in self._SETTING_OF_PARAMETER.items()})
+
+    def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
+        """The only writer of tracker settings at run time (ranges are checked by rclpy)."""
+        changes = {self._SETTING_OF_PARAMETER[p.name]: p.value for p in params
+                   if p.name in self._SETTING_OF_PARAMETER}
+        for tracker in getattr(self, 'trackers', {}).values():
+            tracker.settings = replace(tracker.settings, **changes)
+        return SetParametersResult(successful=True)
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        self.counts['received'] += 1
+        try:
+            points = pointcloud2_to_array(msg)
+        except ValueError as exc:
+            self.counts['rejected'] += 1
+            self.get_logger().warning(f'points2 rejected ({self.counts["rejected"]} so far): {exc}')
+            return
+        stamp = stamp_to_ns(msg.header.stamp)
+        for name, tracker in self.trackers.items():
+            try:
+                result = tracker.update(points, stamp)
+            except ValueError as exc:
+                self.counts['rejected'] += 1
+                self.get_logger().warning(f'{name}: cloud unusable: {exc}')
+                continue
+            if result is None:
+                self.counts['not_found'] += 1
+                self.get_logger().warning(f'{name} not found (inlier fraction below threshold;'
+                                          f' {self.counts["not_found"]} so far)')
+                continue
+            pose = PoseStamped(header=msg.header, pose=matrix_to_pose(result.pose))
+            self.pose_pubs[name].publish(pose)
+            stamps, poses = zip(*tracker.history)
+            self.track_pubs[name].publish(
+                matrices_to_path(np.array(poses), msg.header.frame_id, stamps))
+
+
+def main(args=None) -> None:
+    """Run the node."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = ObjectLocalizerNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (FileNotFoundError, ValueError) as exc:
+        print(f'object_localizer_node: {exc}', file=sys.stderr)
+        raise SystemExit(1)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
