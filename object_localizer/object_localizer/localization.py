@@ -56,7 +56,7 @@ class LocalizationResult:
 
     :ivar pose: 4x4 model -> sensor transform.
     :ivar inlier_fraction: share of the model samples facing the sensor that lie within
-        3 x the M-estimator scale of the scene after alignment.
+        2 x the M-estimator scale of the scene after alignment.
     :ivar rmse: RMS point-to-plane residual of the inliers [m].
     :ivar method: ``'rough+fine'`` or ``'fine'``.
     """
@@ -160,7 +160,7 @@ def fine_localize(model: ModelTemplate, scene: o3d.geometry.PointCloud, initial:
 
     Only the model samples facing the sensor take part (the far side is never observed).
 
-    :param max_distance: correspondence search radius [m].
+    :param max_distance: final correspondence search radius [m] (annealed from twice that).
     :param loss_scale: the M-estimator's scale k [m] (Tukey: residuals beyond k get weight 0);
         the kernel is annealed 4k -> 2k -> k.
     """
@@ -171,26 +171,36 @@ def fine_localize(model: ModelTemplate, scene: o3d.geometry.PointCloud, initial:
     if not scene.has_normals():
         raise ValueError('scene cloud needs normals (use prepare_scene)')
     pose = np.asarray(initial, dtype=float).copy()
-    # Graduated M-estimation: start with a wide kernel (4k) so a distant start converges, end at
-    # k so that outliers beyond k get no weight; the visible part is refreshed at each stage.
-    for scale in (4.0 * loss_scale, 2.0 * loss_scale, loss_scale):
+    # Graduated M-estimation: start wide (kernel 4k, search radius 2 x max_distance) so a distant
+    # start converges, end at k and max_distance so that outliers beyond k get no weight; the
+    # visible part of the model is refreshed at each stage.
+    for scale, reach in ((4.0 * loss_scale, 2.0 * max_distance),
+                         (2.0 * loss_scale, 1.5 * max_distance), (loss_scale, max_distance)):
         src = _visible_model(model, pose)
         est = reg.TransformationEstimationPointToPlane(kernels[loss](k=scale)) \
             if loss != 'l2' else reg.TransformationEstimationPointToPlane()
-        result = reg.registration_icp(src, scene, max_distance, pose, est,
+        result = reg.registration_icp(src, scene, reach, pose, est,
                                       reg.ICPConvergenceCriteria(1e-9, 1e-9, max_iterations))
         pose = np.asarray(result.transformation).copy()
     src = _visible_model(model, pose)
-    ev = reg.evaluate_registration(src, scene, 3.0 * loss_scale, pose)
+    ev = reg.evaluate_registration(src, scene, 2.0 * loss_scale, pose)
     return LocalizationResult(pose, float(ev.fitness), float(ev.inlier_rmse), 'fine')
 
 
 def localize(model: ModelTemplate, scene_points: np.ndarray, *,
              prior: Optional[np.ndarray] = None, min_inlier_fraction: float = 0.5,
              seed: int = 0, max_distance: float = 0.01, loss: str = 'tukey',
-             loss_scale: float = 0.0015, drop_plane: bool = True) -> LocalizationResult:
+             loss_scale: float = 0.0015, drop_plane: bool = True, attempts: int = 5,
+             accept_fraction: float = 0.9) -> LocalizationResult:
     """Localise ``model`` in a scene cloud (N, 3) [m]: fine from ``prior`` when it holds, else
-    rough + fine. Raises ValueError for unusable clouds."""
+    rough + fine.
+
+    The global search runs up to ``attempts`` seeded RANSAC hypotheses, each refined, and keeps
+    the one with the most inliers (then the lowest RMS); it stops early once a hypothesis
+    explains ``accept_fraction`` of the visible model.
+
+    :raises ValueError: unusable clouds.
+    """
     scene = prepare_scene(scene_points, model.voxel_size / 2.0)
     if prior is not None:
         res = fine_localize(model, scene, prior, max_distance=max_distance, loss=loss,
@@ -202,14 +212,14 @@ def localize(model: ModelTemplate, scene_points: np.ndarray, *,
         diameter = float(np.linalg.norm(model.points.max(axis=0) - model.points.min(axis=0)))
         search = remove_dominant_plane(search, model.voxel_size, 2.0 * diameter, seed=seed)
     best: Optional[LocalizationResult] = None
-    for attempt in range(3):
+    for attempt in range(attempts):
         rough = rough_localize(model, search, seed=seed + attempt)
         res = fine_localize(model, scene, rough, max_distance=max_distance, loss=loss,
                             loss_scale=loss_scale)
         res.method = 'rough+fine'
         if best is None or (res.inlier_fraction, -res.rmse) > (best.inlier_fraction, -best.rmse):
             best = res
-        if best.inlier_fraction >= max(min_inlier_fraction, 0.9):
+        if best.inlier_fraction >= max(min_inlier_fraction, accept_fraction):
             break
     assert best is not None
     return best
