@@ -10,7 +10,8 @@ uniform outliers around the object. Methods, all in this run:
 - peer: Open3D point-to-point ICP (Besl & McKay) from the same prior.
 Error: ADD-S [m] (symmetric objects). The global search counts as a success when it ends within
 1 mm ADD-S of the fine stage started at the true pose (right basin found); times are compared as
-ratios to the peer measured in the same run, so machine load cancels. Writes bench/results/localizer_accuracy.json.
+ratios to the peer measured in the same run, so machine load cancels.
+Writes bench/results/localizer_accuracy.json.
 """
 
 import argparse

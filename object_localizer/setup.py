@@ -1,5 +1,3 @@
-from glob import glob
-
 from setuptools import find_packages, setup
 
 package_name = 'object_localizer'
@@ -17,7 +15,8 @@ setup(
     zip_safe=False,
     maintainer='stereo_manip maintainers',
     maintainer_email='maintainers@stereo-manip.org',
-    description='Known 3D models localised in point clouds: descriptors + RANSAC, then ICP with an M-estimator; 6-DOF pose tracking.',
+    description=('Known 3D models localised in point clouds: descriptors + RANSAC, then ICP with '
+                 'an M-estimator; 6-DOF pose tracking.'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

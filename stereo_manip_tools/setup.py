@@ -1,5 +1,3 @@
-from glob import glob
-
 from setuptools import find_packages, setup
 
 package_name = 'stereo_manip_tools'
@@ -17,7 +15,8 @@ setup(
     zip_safe=False,
     maintainer='stereo_manip maintainers',
     maintainer_email='maintainers@stereo-manip.org',
-    description='Shared tools for stereo_manip: message/array conversions, pose math, mesh I/O, stamp synchroniser, rosbag2 record/replay, test harness.',
+    description=('Shared tools for stereo_manip: message/array conversions, pose math, mesh I/O, '
+                 'stamp synchroniser, rosbag2 record/replay, test harness.'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

@@ -97,7 +97,8 @@ class ObjectLocalizerNode(Node):
             points = pointcloud2_to_array(msg)
         except ValueError as exc:
             self.counts['rejected'] += 1
-            self.get_logger().warning(f'points2 rejected ({self.counts["rejected"]} so far): {exc}')
+            self.get_logger().warning(
+                f'points2 rejected ({self.counts["rejected"]} so far): {exc}')
             return
         stamp = stamp_to_ns(msg.header.stamp)
         for name, tracker in self.trackers.items():

@@ -34,6 +34,9 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument('--topics', nargs='+', default=None, help='replay only these topics')
     p.add_argument('--delay', type=float, default=1.0,
                    help='seconds to wait after creating publishers (discovery) before playing')
+    p.add_argument('--wait-subscribers', type=int, default=0, metavar='N',
+                   help='before playing, wait (up to 60 s) until every replayed topic has at '
+                        'least N subscribers')
     return p.parse_args(argv)
 
 
@@ -66,6 +69,14 @@ def main(args: Optional[Sequence[str]] = None) -> int:
     code = 0
     try:
         time.sleep(opts.delay)
+        deadline = time.monotonic() + 60.0
+        while opts.wait_subscribers and any(
+                p.get_subscription_count() < opts.wait_subscribers for p in pubs.values()):
+            if time.monotonic() > deadline:
+                print(f'replay: fewer than {opts.wait_subscribers} subscriber(s) after 60 s; '
+                      'playing anyway', file=sys.stderr)
+                break
+            time.sleep(0.05)
         while True:
             t0_wall = time.monotonic()
             t0_bag: Optional[int] = None

@@ -95,7 +95,8 @@ def load_obj(path: os.PathLike | str) -> PolygonMesh:
                         idx.append(i - 1 if i > 0 else len(vertices) + i)
                     faces.append(idx)
             except ValueError as exc:
-                raise ValueError(f'{path}:{lineno}: malformed OBJ record {line.strip()!r}') from exc
+                raise ValueError(f'{path}:{lineno}: malformed OBJ record '
+                                 f'{line.strip()!r}') from exc
     if not vertices:
         raise ValueError(f'{path}: no vertices found; is it an OBJ file?')
     return PolygonMesh(np.array(vertices), faces, path.stem)
@@ -104,7 +105,8 @@ def load_obj(path: os.PathLike | str) -> PolygonMesh:
 def save_obj(mesh: PolygonMesh, path: os.PathLike | str, comment: str = '') -> None:
     """Write a mesh as OBJ with polygon faces (1-based indices), units metres."""
     with open(path, 'w', encoding='utf-8') as fh:
-        fh.write(f'# {mesh.name or Path(path).stem}: units metres, polygon faces CCW from outside\n')
+        name = mesh.name or Path(path).stem
+        fh.write(f'# {name}: units metres, polygon faces CCW from outside\n')
         for line in comment.splitlines():
             fh.write(f'# {line}\n')
         for v in mesh.vertices:

@@ -82,7 +82,7 @@ def nearest_rotation(M: np.ndarray) -> np.ndarray:
 
 
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Build a 4x4 homogeneous transform from a 3x3 rotation and a translation [m] of shape (3,)."""
+    """4x4 homogeneous transform from a 3x3 rotation and a translation [m] of shape (3,)."""
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = np.asarray(t, dtype=float).reshape(3)

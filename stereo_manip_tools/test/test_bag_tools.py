@@ -88,8 +88,8 @@ def test_bad_input_exits_nonzero_without_traceback(tmp_path, args, expected):
 
 
 @pytest.mark.process
-def test_record_then_replay_gives_identical_messages_with_original_spacing(ros_node,
-                                                                         tmp_path):
+def test_record_then_replay_gives_identical_messages_with_original_spacing(
+        ros_node, tmp_path):
     node = ros_node
     pub_je = node.create_publisher(JointEstimate, '/test_bag/joint', QOS)
     pub_s = node.create_publisher(String, '/test_bag/text', QOS)
@@ -117,7 +117,8 @@ def test_record_then_replay_gives_identical_messages_with_original_spacing(ros_n
     sub = node.create_subscription(JointEstimate, '/test_bag/joint',
                                    lambda m: received.append((time.monotonic(), m)), QOS)
     with start_executable('stereo_manip_tools', 'replay', str(bag), '--topics',
-                          '/test_bag/joint', observer=node, wait_for_node='bag_replayer'):
+                          '/test_bag/joint', '--wait-subscribers', '1', observer=node,
+                          wait_for_node='bag_replayer'):
         assert spin_until(node, lambda: len(received) >= 24, 30), len(received)
     node.destroy_subscription(sub)
     assert [m for _, m in received] == sent

@@ -1,0 +1,138 @@
+"""Package executables as their own processes, the way ``ros2 run`` starts them.
+
+Used by the test harness and by the demo pipeline runner. The executable is found through the
+ament index (``<prefix>/lib/<package>/<executable>``), output goes to a temporary log file, and
+:meth:`ExecutableProcess.stop` sends SIGINT first, as Ctrl-C would.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import tempfile
+import time
+from typing import Any, Callable, Optional, Sequence
+import uuid
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+__all__ = ['make_node', 'shutdown_node', 'spin_until', 'executable_path', 'ExecutableProcess']
+
+
+def make_node(name: Optional[str] = None) -> Node:
+    """A node in a fresh rclpy Context (destroy with ``shutdown_node``)."""
+    context = Context()
+    rclpy.init(context=context)
+    return rclpy.create_node(name or f'test_{uuid.uuid4().hex[:8]}', context=context)
+
+
+def shutdown_node(node: Node) -> None:
+    """Destroy a node made by :func:`make_node` and shut its context down."""
+    context = node.context
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def spin_until(node: Node, predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
+    """Spin ``node`` until ``predicate()`` is true or ``timeout`` [s] expires; returns the result.
+    """
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                return bool(predicate())
+            executor.spin_once(timeout_sec=0.02)
+        return True
+    finally:
+        executor.remove_node(node)
+        executor.shutdown()
+
+
+def executable_path(package: str, executable: str) -> Path:
+    """``<prefix of package>/lib/<package>/<executable>`` from the ament index (as ros2 run).
+
+    :raises FileNotFoundError: package not in the index or executable not installed.
+    """
+    from ament_index_python.packages import get_package_prefix
+
+    path = Path(get_package_prefix(package)) / 'lib' / package / executable
+    if not os.access(path, os.X_OK):
+        raise FileNotFoundError(f'no executable {executable!r} installed for {package!r} '
+                                f'(looked for {path})')
+    return path
+
+
+class ExecutableProcess:
+    """A package executable running as its own process; output captured to a temp file."""
+
+    def __init__(self, package: str, executable: str, args: Sequence[str] = (),
+                 ros_args: Sequence[str] = (), env: Optional[dict] = None) -> None:
+        self.command = [str(executable_path(package, executable)), *args]
+        if ros_args:
+            self.command += ['--ros-args', *ros_args]
+        self._log = tempfile.NamedTemporaryFile(prefix=f'{executable}_', suffix='.log',
+                                                delete=False)
+        full_env = dict(os.environ)
+        full_env.setdefault('PYTHONUNBUFFERED', '1')
+        full_env.update(env or {})
+        self.process = subprocess.Popen(self.command, stdout=self._log,
+                                        stderr=subprocess.STDOUT, env=full_env)
+
+    def output(self) -> str:
+        """Everything the process printed so far (stdout and stderr)."""
+        self._log.flush()
+        return Path(self._log.name).read_text(errors='replace')
+
+    def running(self) -> bool:
+        """True while the process has not exited."""
+        return self.process.poll() is None
+
+    def wait_for_node(self, observer: Node, node_name: str, timeout: float = 30.0) -> bool:
+        """Spin ``observer`` until ``node_name`` is in the graph (or the process died)."""
+        def seen() -> bool:
+            if not self.running():
+                return True
+            return node_name in [n for n, _ in observer.get_node_names_and_namespaces()]
+        spin_until(observer, seen, timeout)
+        return self.running() and node_name in [
+            n for n, _ in observer.get_node_names_and_namespaces()]
+
+    def wait_for_output(self, text: str, timeout: float = 30.0) -> bool:
+        """Wait until ``text`` appears in the output or the process exits."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in self.output():
+                return True
+            if not self.running():
+                return text in self.output()
+            time.sleep(0.05)
+        return False
+
+    def stop(self, timeout: float = 10.0) -> int:
+        """SIGINT (as Ctrl-C), then SIGKILL after ``timeout`` [s]; returns the exit code."""
+        if self.running():
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(5)
+        return self.process.returncode
+
+    def __enter__(self) -> 'ExecutableProcess':
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+        self._log.close()
+        try:
+            os.unlink(self._log.name)
+        except OSError:
+            pass
