@@ -29,6 +29,7 @@ __all__ = [
     'rough_localize',
     'fine_localize',
     'localize',
+    'segment_object_points',
 ]
 
 
@@ -223,3 +224,16 @@ def localize(model: ModelTemplate, scene_points: np.ndarray, *,
             break
     assert best is not None
     return best
+
+
+def segment_object_points(points: np.ndarray, model: ModelTemplate, pose: np.ndarray,
+                          margin: float = 0.005) -> np.ndarray:
+    """Scene points (N, 3) [m] that fall inside the model's bounding box at ``pose``, grown by
+    ``margin`` [m] on every side: the object's own cloud, e.g. for implicit-polynomial fitting.
+    """
+    P = np.asarray(points, dtype=float)
+    P = P[np.all(np.isfinite(P), axis=1)]
+    local = (P - pose[:3, 3]) @ pose[:3, :3]
+    lo = model.points.min(axis=0) - margin
+    hi = model.points.max(axis=0) + margin
+    return P[np.all((local >= lo) & (local <= hi), axis=1)]

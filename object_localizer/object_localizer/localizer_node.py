@@ -2,7 +2,9 @@
 
 Subscribes ``points2`` (sensor_msgs/PointCloud2, sensor-data QoS). For every model named in the
 ``models`` parameter publishes ``objects/<name>/pose`` (PoseStamped, the cloud's frame and
-stamp) and ``objects/<name>/track`` (nav_msgs/Path of the recent poses).
+stamp), ``objects/<name>/track`` (nav_msgs/Path of the recent poses) and
+``objects/<name>/cloud`` (PointCloud2: the scene points inside the model's bounding box at the
+found pose, grown by ``segment_margin``; the object's own cloud for the IP modeler).
 """
 
 from __future__ import annotations
@@ -23,10 +25,10 @@ from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 
-from object_localizer.localization import prepare_model
+from object_localizer.localization import prepare_model, segment_object_points
 from object_localizer.tracking import ObjectTracker, TrackerSettings
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, \
-    pointcloud2_to_array, stamp_to_ns
+    pointcloud2_to_array, stamp_to_ns, xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
 
 __all__ = ['ObjectLocalizerNode', 'main']
@@ -58,6 +60,9 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('min_inlier_fraction', 0.5,
                                _float('below it the object is searched globally / not found',
                                       0.0, 1.0))
+        self.declare_parameter('segment_margin', 0.005,
+                               _float('margin around the model box for objects/<name>/cloud [m]',
+                                      0.0, 0.1))
         self.declare_parameter('track_length', 300, ParameterDescriptor(
             type=ParameterType.PARAMETER_INTEGER, description='poses kept in each track',
             integer_range=[IntegerRange(from_value=1, to_value=100000)]))
@@ -65,11 +70,14 @@ class ObjectLocalizerNode(Node):
         self.trackers: Dict[str, ObjectTracker] = {}
         self.pose_pubs = {}
         self.track_pubs = {}
+        self.cloud_pubs = {}
         for name in self.get_parameter('models').value:
             mesh = load_obj(find_model(name))
             self.trackers[name] = ObjectTracker(prepare_model(mesh, voxel), self._settings())
             self.pose_pubs[name] = self.create_publisher(PoseStamped, f'objects/{name}/pose', 10)
             self.track_pubs[name] = self.create_publisher(Path, f'objects/{name}/track', 10)
+            self.cloud_pubs[name] = self.create_publisher(PointCloud2, f'objects/{name}/cloud',
+                                                          10)
         self.counts = {'received': 0, 'rejected': 0, 'not_found': 0}
         self.create_subscription(PointCloud2, 'points2', self._on_cloud, qos_profile_sensor_data)
         self.get_logger().info(f'localising {", ".join(self.trackers)} in points2')
@@ -115,6 +123,9 @@ class ObjectLocalizerNode(Node):
                 continue
             pose = PoseStamped(header=msg.header, pose=matrix_to_pose(result.pose))
             self.pose_pubs[name].publish(pose)
+            segment = segment_object_points(points, tracker.model, result.pose,
+                                            self.get_parameter('segment_margin').value)
+            self.cloud_pubs[name].publish(xyz_to_pointcloud2(segment, msg.header))
             stamps, poses = zip(*tracker.history)
             self.track_pubs[name].publish(
                 matrices_to_path(np.array(poses), msg.header.frame_id, stamps))

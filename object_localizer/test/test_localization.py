@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from object_localizer.evaluation import add_s, sample_visible_surface
-from object_localizer.localization import localize, prepare_model
+from object_localizer.localization import localize, prepare_model, segment_object_points
 from object_localizer.tracking import ObjectTracker, TrackerSettings
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis, transform_points
@@ -81,3 +81,14 @@ def test_bad_clouds_raise_clear_errors(models):
         localize(template, np.full((50, 3), np.nan))
     with pytest.raises(ValueError, match='voxel_size'):
         prepare_model(models['link_arm'], 0.0)
+
+
+def test_segmentation_keeps_the_object_and_drops_its_surroundings(models):
+    rng = np.random.default_rng(5)
+    template = prepare_model(models['link_arm'])
+    T = make_transform(rotation_about_axis([0, 1, 0], 0.4), [0.0, 0.0, 0.8])
+    obj = sample_visible(models['link_arm'], T, 3000, rng)
+    far = rng.uniform([-0.5, -0.5, 0.5], [0.5, 0.5, 1.2], size=(2000, 3))
+    far = far[np.linalg.norm(far - T[:3, 3], axis=1) > 0.2]
+    seg = segment_object_points(np.vstack([obj, far, [[np.nan, 0, 1]]]), template, T, 0.005)
+    assert len(seg) == len(obj) and np.allclose(np.sort(seg, axis=0), np.sort(obj, axis=0))
