@@ -1,0 +1,301 @@
+"""``contact_correction_node``: correct a moving object's observed pose with contact relations.
+
+Subscriptions (geometry_msgs/PoseStamped, sensor-data QoS, poses in a common frame):
+  - ``moving_pose``: observed pose of the moving object (e.g. the peg);
+  - ``fixed_pose``: pose of the fixed object (the newest one is used); or set the parameter
+    ``fixed_pose_static`` ([x, y, z, qx, qy, qz, qw]) for a fixed object that does not move.
+Publications, one set per ``moving_pose`` message:
+  - ``corrected_pose`` (PoseStamped, the input frame): the corrected pose, or the observed pose
+    unchanged when no correction applies (``ContactState.corrected`` false, status says why);
+  - ``contact_state`` (stereo_manip_msgs/ContactState, header frame = ``fixed_frame``): the
+    relation, ranks, constrained / free directions, penetration, residual, status;
+  - ``corrected_track`` (nav_msgs/Path): the last ``track_length`` output poses.
+Service ``correct_trajectory`` (stereo_manip_msgs/CorrectTrajectory) corrects a batch.
+
+Bad input (NaN or zero quaternions, no fixed pose yet) is logged with the reason and counted;
+the counts are appended to every ContactState status.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Dict, List, Tuple
+
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
+    ParameterType, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from std_msgs.msg import Header
+from stereo_manip_msgs.msg import ContactState
+from stereo_manip_msgs.srv import CorrectTrajectory
+
+from contact_correction.conversions import contact_state_msg
+from contact_correction.correction import CorrectionResult, correct_pose
+from contact_correction.polyhedron import Polyhedron, load_polyhedron
+from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
+    path_to_matrices, pose_stamped_to_matrix
+from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
+
+__all__ = ['ContactCorrectionNode', 'main']
+
+
+def _float(desc: str, lo: float, hi: float, read_only: bool = False) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_DOUBLE, description=desc,
+                               read_only=read_only,
+                               floating_point_range=[FloatingPointRange(from_value=lo,
+                                                                        to_value=hi)])
+
+
+def _int(desc: str, lo: int, hi: int, read_only: bool = False) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_INTEGER, description=desc,
+                               read_only=read_only,
+                               integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
+
+
+def _string(desc: str, read_only: bool = False) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_STRING, description=desc,
+                               read_only=read_only)
+
+
+def _bool(desc: str) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_BOOL, description=desc)
+
+
+def static_pose(values: List[float]) -> np.ndarray:
+    """4x4 pose of ``[x, y, z, qx, qy, qz, qw]`` (metres, unit quaternion).
+
+    :raises ValueError: wrong length, non-finite values or a zero quaternion.
+    """
+    v = np.asarray(values, dtype=float)
+    if v.shape != (7,) or not np.all(np.isfinite(v)):
+        raise ValueError(f'fixed_pose_static must be 7 finite numbers [x y z qx qy qz qw], '
+                         f'got {list(values)}')
+    return make_transform(matrix_from_quaternion(v[3:]), v[:3])
+
+
+class ContactCorrectionNode(Node):
+    """Streaming and batch contact-based correction; thin wrapper around
+    :func:`contact_correction.correction.correct_pose`."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('contact_correction', **kwargs)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.declare_parameter('moving_object', 'peg', _string(
+            'model name (or OBJ/PLY/STL path) of the moving object', read_only=True))
+        self.declare_parameter('fixed_object', 'hole_block', _string(
+            'model name (or OBJ/PLY/STL path) of the fixed object', read_only=True))
+        self.declare_parameter('fixed_frame', '', _string(
+            "frame_id of ContactState (the fixed object's model frame); empty: fixed_object"))
+        static_desc = ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=True,
+            description='[x y z qx qy qz qw] of a fixed object that does not move (in the '
+                        'moving poses\' frame); not set: use the fixed_pose topic')
+        self.declare_parameter('fixed_pose_static', Parameter.Type.DOUBLE_ARRAY, static_desc)
+        self.declare_parameter('tolerance', 0.002, _float(
+            'contact detection distance [m]', 0.0, 0.1))
+        self.declare_parameter('penetration_tolerance', 0.002, _float(
+            'deepest interpenetration still counted as contact when detecting [m]', 0.0, 0.1))
+        self.declare_parameter('angle_tolerance', 0.1, _float(
+            'angular slack of the local separation test [rad]', 0.0, 0.5))
+        self.declare_parameter('optimal', True, _bool(
+            'apply the optimal linear correction (Eqs. 2-9) after the non-linear step'))
+        self.declare_parameter('max_translation', 0.02, _float(
+            'largest accepted correction of the moving origin [m]; larger: passed through',
+            0.0, 1.0))
+        self.declare_parameter('max_rotation', 0.35, _float(
+            'largest accepted orientation correction [rad]; larger: passed through',
+            0.0, np.pi))
+        self.declare_parameter('check_penetration', True, _bool(
+            'measure penetration before and after correction (refuse to output a pose that '
+            'still interpenetrates)'))
+        self.declare_parameter('track_length', 500, _int(
+            'poses kept in corrected_track', 1, 1000000, read_only=True))
+
+        g = self.get_parameter
+        self.moving: Polyhedron | None = None
+        self.fixed: Polyhedron | None = None
+        self.model_error = ''
+        try:
+            self.moving = load_polyhedron(g('moving_object').value)
+            self.fixed = load_polyhedron(g('fixed_object').value)
+        except (ValueError, FileNotFoundError, OSError) as exc:
+            self.model_error = f'models unusable: {exc}'
+            self.get_logger().error(f'{self.model_error}; every pose will be passed through')
+        self.fixed_T: np.ndarray | None = None
+        if self._static_values():
+            try:
+                self.fixed_T = static_pose(self._static_values())
+            except ValueError as exc:
+                self.model_error = self.model_error or str(exc)
+                self.get_logger().error(f'{exc}; every pose will be passed through')
+        self.counts: Dict[str, int] = {'received': 0, 'rejected': 0, 'no_fixed_pose': 0,
+                                       'corrected': 0, 'passed_through': 0}
+        self.track: deque = deque(maxlen=int(g('track_length').value))
+        self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
+        self.state_pub = self.create_publisher(ContactState, 'contact_state', 10)
+        self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
+        self.create_subscription(PoseStamped, 'moving_pose', self._on_moving,
+                                 qos_profile_sensor_data)
+        if not self._static_values():
+            self.create_subscription(PoseStamped, 'fixed_pose', self._on_fixed,
+                                     qos_profile_sensor_data)
+        self.create_service(CorrectTrajectory, 'correct_trajectory', self._on_service)
+        self.get_logger().info(
+            f'contact_correction: {g("moving_object").value} against '
+            f'{g("fixed_object").value}, tolerance {g("tolerance").value} m, optimal '
+            f'{g("optimal").value}')
+
+    # --- parameters -----------------------------------------------------------------------
+
+    def _static_values(self) -> List[float]:
+        p = self.get_parameter_or('fixed_pose_static', None)
+        try:
+            return list(p.value) if p is not None and p.value is not None else []
+        except Exception:  # noqa: BLE001 - uninitialised (no override given): not set
+            return []
+
+    def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
+        """Checks beyond the descriptors' ranges."""
+        for p in params:
+            if p.name in ('moving_object', 'fixed_object') and not str(p.value).strip():
+                return SetParametersResult(successful=False,
+                                           reason=f'{p.name} must name a model')
+            if p.name == 'fixed_pose_static' and p.value:
+                try:
+                    static_pose(list(p.value))
+                except ValueError as exc:
+                    return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _options(self) -> dict:
+        g = self.get_parameter
+        return dict(optimal=g('optimal').value, tolerance=g('tolerance').value,
+                    penetration_tolerance=g('penetration_tolerance').value,
+                    angle_tolerance=g('angle_tolerance').value,
+                    max_translation=g('max_translation').value,
+                    max_rotation=g('max_rotation').value,
+                    check_penetration=g('check_penetration').value)
+
+    def _fixed_frame(self) -> str:
+        return self.get_parameter('fixed_frame').value or self.get_parameter('fixed_object').value
+
+    def _correct(self, T_moving: np.ndarray, T_fixed: np.ndarray, **overrides) -> CorrectionResult:
+        if self.moving is None or self.fixed is None or self.model_error:
+            return CorrectionResult(T_moving=T_moving, status=self.model_error)
+        return correct_pose(self.moving, self.fixed, T_moving, T_fixed,
+                            **{**self._options(), **overrides})
+
+    # --- streaming input ------------------------------------------------------------------
+
+    def _reject(self, what: str, why: str, key: str = 'rejected') -> None:
+        self.counts[key] += 1
+        self.get_logger().warning(f'{what} not corrected ({self.counts[key]} so far): {why}')
+
+    def _on_fixed(self, msg: PoseStamped) -> None:
+        try:
+            self.fixed_T, _, _ = pose_stamped_to_matrix(msg)
+        except ValueError as exc:
+            self._reject('fixed_pose', str(exc))
+
+    def _summary(self) -> str:
+        c = self.counts
+        return (f'input: {c["received"]} received, {c["corrected"]} corrected, '
+                f'{c["passed_through"]} passed through, {c["rejected"]} rejected, '
+                f'{c["no_fixed_pose"]} without fixed pose')
+
+    def _on_moving(self, msg: PoseStamped) -> None:
+        self.counts['received'] += 1
+        header = msg.header
+        try:
+            T, stamp, frame = pose_stamped_to_matrix(msg)
+        except ValueError as exc:
+            self._reject('moving_pose', str(exc))
+            return
+        if self.fixed_T is None:
+            self._reject('moving_pose', 'no fixed_pose received yet', 'no_fixed_pose')
+            return
+        result = self._correct(T, self.fixed_T)
+        self.counts['corrected' if result.corrected else 'passed_through'] += 1
+        if not result.corrected:
+            self.get_logger().debug(f'pose passed through: {result.status}')
+        self.pose_pub.publish(PoseStamped(header=header, pose=matrix_to_pose(result.T_moving)))
+        state = contact_state_msg(result, Header(stamp=header.stamp, frame_id=self._fixed_frame()),
+                                  self.get_parameter('moving_object').value,
+                                  self.get_parameter('fixed_object').value)
+        state.status = f'{state.status}; {self._summary()}'
+        self.state_pub.publish(state)
+        self.track.append((stamp, result.T_moving))
+        stamps = [s for s, _ in self.track]
+        self.track_pub.publish(matrices_to_path(np.array([M for _, M in self.track]), frame,
+                                                stamps))
+
+    # --- service --------------------------------------------------------------------------
+
+    def _on_service(self, request: CorrectTrajectory.Request,
+                    response: CorrectTrajectory.Response) -> CorrectTrajectory.Response:
+        try:
+            moving, fixed = self._request_models(request)
+            T_m, stamps = path_to_matrices(request.moving_track)
+            T_f, _ = path_to_matrices(request.fixed_track)
+            if len(T_f) == 1:
+                T_f = np.repeat(T_f, len(T_m), axis=0)
+            elif len(T_f) != len(T_m):
+                raise ValueError(f'fixed_track has {len(T_f)} poses; give 1 or '
+                                 f'{len(T_m)} (one per moving pose)')
+            opts = self._options()
+            opts['optimal'] = bool(request.optimal)
+            if request.tolerance > 0:
+                opts['tolerance'] = float(request.tolerance)
+            elif request.tolerance < 0:
+                raise ValueError(f'tolerance must be >= 0, got {request.tolerance}')
+        except (ValueError, FileNotFoundError, OSError) as exc:
+            response.success = False
+            response.message = str(exc)
+            self.get_logger().warning(f'correct_trajectory request failed: {exc}')
+            return response
+        frame = request.moving_track.header.frame_id or (
+            request.moving_track.poses[0].header.frame_id if request.moving_track.poses else '')
+        out = []
+        for k in range(len(T_m)):
+            r = correct_pose(moving, fixed, T_m[k], T_f[k], **opts)
+            out.append(r.T_moving)
+            response.states.append(contact_state_msg(
+                r, Header(stamp=ns_to_stamp(int(stamps[k])), frame_id=self._fixed_frame()),
+                request.moving_object or self.get_parameter('moving_object').value,
+                request.fixed_object or self.get_parameter('fixed_object').value))
+        response.corrected_track = matrices_to_path(np.array(out).reshape(-1, 4, 4), frame,
+                                                    stamps)
+        n_ok = sum(s.corrected for s in response.states)
+        response.success = True
+        response.message = f'{n_ok} of {len(out)} frames corrected'
+        return response
+
+    def _request_models(self, request: CorrectTrajectory.Request
+                        ) -> Tuple[Polyhedron, Polyhedron]:
+        g = self.get_parameter
+        names = (request.moving_object or g('moving_object').value,
+                 request.fixed_object or g('fixed_object').value)
+        if names == (g('moving_object').value, g('fixed_object').value):
+            if self.model_error:
+                raise ValueError(self.model_error)
+            return self.moving, self.fixed
+        return load_polyhedron(names[0]), load_polyhedron(names[1])
+
+
+def main(args=None) -> None:
+    """Run the node."""
+    rclpy.init(args=args)
+    node = ContactCorrectionNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()

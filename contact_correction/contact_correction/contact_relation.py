@@ -1,0 +1,362 @@
+"""Contact relation between a moving and a fixed polyhedron (Section 3; Hirukawa et al. 1994).
+
+A contact relation is the set of pairs of contacting elements. Following Hirukawa et al. the
+elementary pairs are vertex-face (a vertex of the moving object on a face of the fixed one),
+face-vertex (a vertex of the fixed object on a face of the moving one) and edge-edge (two
+non-parallel edges crossing); edge-face and face-face contacts are represented by their
+vertex-face, face-vertex and edge-edge combinations (an edge lying on a face gives its end
+vertices on the face plus its crossings with the face's boundary edges).
+
+Everything is computed in the **fixed object's model frame**: the relative pose
+``T_rel = inv(T_fixed) @ T_moving`` maps moving-model points into it. Each pair has a contact
+point ``p`` and the unit normal ``f`` of its separating plane, pointing from the fixed object
+towards the moving one, and a signed distance ``d`` (> 0 apart, < 0 interpenetrating) whose
+first-order change under an infinitesimal screw ``[s0, s1]`` of the moving object (rotation
+``s0`` [rad], translation ``s1`` [m] of the frame origin) is ``f . s1 + (p x f) . s0`` --
+exactly the row of Eq. 2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import List, Sequence, Tuple
+
+import numpy as np
+
+from stereo_manip_tools.transforms import invert_transform, transform_points
+
+from .polyhedron import Polyhedron, cross3
+
+__all__ = [
+    'VERTEX',
+    'EDGE',
+    'FACE',
+    'ContactPair',
+    'ContactGeometry',
+    'detect_contact_relation',
+    'evaluate_contacts',
+    'penetration_depth',
+    'off_element_distance',
+    'relative_pose',
+    'pair_key',
+]
+
+VERTEX = 0
+EDGE = 1
+FACE = 2
+_TYPE_NAME = {VERTEX: 'vertex', EDGE: 'edge', FACE: 'face'}
+
+
+@dataclass(frozen=True)
+class ContactPair:
+    """One pair of contacting elements.
+
+    :ivar moving_type: VERTEX, EDGE or FACE on the moving object.
+    :ivar moving_index: element index on the moving polyhedron.
+    :ivar fixed_type: element type on the fixed object.
+    :ivar fixed_index: element index on the fixed polyhedron.
+    :ivar sign: for edge-edge pairs, +1/-1 orienting ``e_moving x e_fixed`` from the fixed to
+        the moving object (ignored for the other kinds).
+    """
+
+    moving_type: int
+    moving_index: int
+    fixed_type: int
+    fixed_index: int
+    sign: int = 1
+
+    @property
+    def kind(self) -> str:
+        """'vertex-face', 'face-vertex' or 'edge-edge'."""
+        return f'{_TYPE_NAME[self.moving_type]}-{_TYPE_NAME[self.fixed_type]}'
+
+    def __str__(self) -> str:
+        return (f'{_TYPE_NAME[self.moving_type]} {self.moving_index} - '
+                f'{_TYPE_NAME[self.fixed_type]} {self.fixed_index}')
+
+
+def pair_key(pair: ContactPair) -> Tuple[int, int, int, int]:
+    """Identity of a pair for set comparisons (ignores the edge-edge sign)."""
+    return (pair.moving_type, pair.moving_index, pair.fixed_type, pair.fixed_index)
+
+
+@dataclass
+class ContactGeometry:
+    """Geometry of a contact relation at one pose, fixed-object frame.
+
+    :ivar distances: signed distances [m], shape (K,).
+    :ivar points: contact points [m], shape (K, 3).
+    :ivar normals: separating-plane unit normals f (fixed -> moving), shape (K, 3).
+    """
+
+    distances: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+
+
+def relative_pose(T_moving: np.ndarray, T_fixed: np.ndarray) -> np.ndarray:
+    """Pose of the moving object in the fixed object's model frame, 4x4."""
+    return invert_transform(T_fixed) @ np.asarray(T_moving, dtype=float)
+
+
+@lru_cache(maxsize=256)
+def _split_pairs(pairs: Tuple[ContactPair, ...]) -> tuple:
+    """Index arrays of a relation by kind (cached: a relation is evaluated many times)."""
+    vf = [k for k, p in enumerate(pairs) if p.moving_type == VERTEX and p.fixed_type == FACE]
+    fv = [k for k, p in enumerate(pairs) if p.moving_type == FACE and p.fixed_type == VERTEX]
+    ee = [k for k, p in enumerate(pairs) if p.moving_type == EDGE and p.fixed_type == EDGE]
+    if len(vf) + len(fv) + len(ee) != len(pairs):
+        bad = next(p for p in pairs if (p.moving_type, p.fixed_type) not in
+                   ((VERTEX, FACE), (FACE, VERTEX), (EDGE, EDGE)))
+        raise ValueError(f'unsupported contact pair kind {bad.kind!r} ({bad}); use '
+                         'vertex-face, face-vertex or edge-edge')
+
+    def idx(ks: List[int], attr: str) -> np.ndarray:
+        return np.array([getattr(pairs[k], attr) for k in ks], dtype=np.int64)
+
+    return (np.array(vf, dtype=np.int64), idx(vf, 'moving_index'), idx(vf, 'fixed_index'),
+            np.array(fv, dtype=np.int64), idx(fv, 'moving_index'), idx(fv, 'fixed_index'),
+            np.array(ee, dtype=np.int64), idx(ee, 'moving_index'), idx(ee, 'fixed_index'),
+            idx(ee, 'sign').astype(float))
+
+
+def evaluate_contacts(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
+                      pairs: Sequence[ContactPair]) -> ContactGeometry:
+    """Signed distances, contact points and separating-plane normals of ``pairs`` at ``T_rel``.
+
+    :param T_rel: pose of the moving object in the fixed object's frame (4x4).
+    :raises ValueError: on a pair kind other than vertex-face, face-vertex, edge-edge, or an
+        edge-edge pair whose edges are parallel at this pose.
+    """
+    K = len(pairs)
+    d = np.zeros(K)
+    P = np.zeros((K, 3))
+    N = np.zeros((K, 3))
+    R, t = T_rel[:3, :3], T_rel[:3, 3]
+    vf, vi, fi, fv, fi2, wi, ee, mi, ei, sg = _split_pairs(tuple(pairs))
+    if len(vf):
+        x = moving.vertices[vi] @ R.T + t
+        n = fixed.face_normals[fi]
+        d[vf] = (n * x).sum(1) - fixed.face_offsets[fi]
+        P[vf], N[vf] = x, n
+    if len(fv):
+        w = fixed.vertices[wi]
+        nm = moving.face_normals[fi2] @ R.T
+        off = moving.face_offsets[fi2] + nm @ t          # moving face plane in the fixed frame
+        d[fv] = (nm * w).sum(1) - off
+        P[fv], N[fv] = w, -nm
+    if len(ee):
+        a = moving.vertices[moving.edge_vertices[mi, 0]] @ R.T + t
+        em = moving.edge_directions[mi] @ R.T
+        b = fixed.vertices[fixed.edge_vertices[ei, 0]]
+        ef = fixed.edge_directions[ei]
+        c = cross3(em, ef)
+        s = np.linalg.norm(c, axis=1)
+        if np.any(s < 1e-9):
+            bad = pairs[ee[int(np.argmin(s))]]
+            raise ValueError(f'edge-edge pair ({bad}) has parallel edges at this pose')
+        n = sg[:, None] * c / s[:, None]
+        w0 = a - b
+        d[ee] = (n * w0).sum(1)
+        B = (em * ef).sum(1)
+        u = ((ef * w0).sum(1) - B * (em * w0).sum(1)) / (1.0 - B * B)
+        P[ee], N[ee] = b + u[:, None] * ef, n
+    return ContactGeometry(d, P, N)
+
+
+def off_element_distance(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
+                         pairs: Sequence[ContactPair]) -> np.ndarray:
+    """How far [m] each pair's contact point lies outside its elements at ``T_rel``.
+
+    Contact distances are measured to infinite planes and lines; a relation is only realised
+    when every contact point also lies on its bounded elements: the vertex's projection on the
+    face region (vertex-face, face-vertex), the crossing point on both edge segments
+    (edge-edge). 0 when it does.
+
+    :returns: shape (K,), >= 0.
+    """
+    out = np.zeros(len(pairs))
+    R, t = T_rel[:3, :3], T_rel[:3, 3]
+    T_inv = invert_transform(T_rel)
+    for k, p in enumerate(pairs):
+        if p.moving_type == VERTEX and p.fixed_type == FACE:
+            x = R @ moving.vertices[p.moving_index] + t
+            n = fixed.face_normals[p.fixed_index]
+            q = x - (n @ x - fixed.face_offsets[p.fixed_index]) * n
+            out[k] = fixed.face_distance(p.fixed_index, q[None])[0]
+        elif p.moving_type == FACE and p.fixed_type == VERTEX:
+            w = T_inv[:3, :3] @ fixed.vertices[p.fixed_index] + T_inv[:3, 3]
+            n = moving.face_normals[p.moving_index]
+            q = w - (n @ w - moving.face_offsets[p.moving_index]) * n
+            out[k] = moving.face_distance(p.moving_index, q[None])[0]
+        elif p.moving_type == EDGE and p.fixed_type == EDGE:
+            a = R @ moving.vertices[moving.edge_vertices[p.moving_index, 0]] + t
+            em = R @ moving.edge_directions[p.moving_index]
+            b = fixed.vertices[fixed.edge_vertices[p.fixed_index, 0]]
+            ef = fixed.edge_directions[p.fixed_index]
+            w0 = a - b
+            B = em @ ef
+            den = max(1.0 - B * B, 1e-18)
+            sm = (B * (ef @ w0) - em @ w0) / den
+            sf = (ef @ w0 - B * (em @ w0)) / den
+            Lm = moving.edge_lengths[p.moving_index]
+            Lf = fixed.edge_lengths[p.fixed_index]
+            out[k] = max(0.0, -sm, sm - Lm, -sf, sf - Lf)
+    return out
+
+
+def detect_contact_relation(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
+                            T_fixed: np.ndarray, tolerance: float = 1e-3,
+                            penetration_tolerance: float | None = None,
+                            angle_tolerance: float = 0.1) -> List[ContactPair]:
+    """The contact relation between the moving and the fixed object at the given poses.
+
+    A pair is in contact when its signed distance lies in ``[-penetration_tolerance,
+    tolerance]``, its contact point lies on both elements (within the same margin) and the
+    separating plane locally separates the two solids: for a vertex, no incident edge may run
+    into the other solid's interior (deeper than the tolerances allow); for an edge pair, both
+    wedges must lie on their side of the plane within ``angle_tolerance``. Parallel edge pairs
+    and edge crossings at an end vertex are left to the vertex-face / face-vertex pairs that
+    represent them.
+
+    :param T_moving: pose of the moving object (4x4) in a common frame.
+    :param T_fixed: pose of the fixed object (4x4) in the same frame.
+    :param tolerance: largest separation counted as contact [m].
+    :param penetration_tolerance: largest interpenetration counted as contact [m] (default:
+        ``tolerance``); deeper pairs are not part of the relation.
+    :param angle_tolerance: slack [rad] of the local separation test.
+    :returns: the pairs, ordered vertex-face, face-vertex, edge-edge, by element index.
+    """
+    if tolerance < 0:
+        raise ValueError(f'tolerance must be >= 0, got {tolerance}')
+    pen = tolerance if penetration_tolerance is None else float(penetration_tolerance)
+    margin = max(tolerance, pen)
+    sin_tol = np.sin(angle_tolerance)
+    T_rel = relative_pose(T_moving, T_fixed)
+    R, t = T_rel[:3, :3], T_rel[:3, 3]
+    pairs: List[ContactPair] = []
+
+    # vertex (moving) - face (fixed), in the fixed frame
+    for v, f in _vertex_face_candidates(moving, fixed, R, t, tolerance, pen, margin, sin_tol):
+        pairs.append(ContactPair(VERTEX, v, FACE, f))
+    # face (moving) - vertex (fixed), in the moving frame
+    T_inv = invert_transform(T_rel)
+    for w, f in _vertex_face_candidates(fixed, moving, T_inv[:3, :3], T_inv[:3, 3], tolerance,
+                                        pen, margin, sin_tol):
+        pairs.append(ContactPair(FACE, f, VERTEX, w))
+
+    # edge - edge (both convex, not parallel, crossing away from their end vertices)
+    em_idx = np.flatnonzero(moving.edge_convex)
+    ef_idx = np.flatnonzero(fixed.edge_convex)
+    if len(em_idx) and len(ef_idx):
+        A = moving.vertices[moving.edge_vertices[em_idx, 0]] @ R.T + t     # (Em, 3)
+        Em = moving.edge_directions[em_idx] @ R.T
+        Lm = moving.edge_lengths[em_idx]
+        Bf = fixed.vertices[fixed.edge_vertices[ef_idx, 0]]
+        Ef = fixed.edge_directions[ef_idx]
+        Lf = fixed.edge_lengths[ef_idx]
+        C = cross3(Em[:, None, :], Ef[None, :, :])                       # (Em, Ef, 3)
+        S = np.linalg.norm(C, axis=-1)
+        ok = S > sin_tol
+        W0 = A[:, None, :] - Bf[None, :, :]
+        Bd = Em @ Ef.T
+        den = np.where(ok, 1.0 - Bd * Bd, 1.0)
+        dw_m = np.einsum('ik,ijk->ij', Em, W0)
+        dw_f = np.einsum('jk,ijk->ij', Ef, W0)
+        sm = (Bd * dw_f - dw_m) / den       # parameter [m] on the moving edge
+        sf = (dw_f - Bd * dw_m) / den       # parameter [m] on the fixed edge
+        end = max(margin, 1e-9)
+        ok &= (sm > end) & (sm < Lm[:, None] - end) & (sf > end) & (sf < Lf[None, :] - end)
+        for i, j in np.argwhere(ok):
+            c = C[i, j] / S[i, j]
+            fe = int(ef_idx[j])
+            me = int(em_idx[i])
+            out_f = fixed.face_normals[fixed.edge_faces[fe]].sum(0)
+            sign = 1 if c @ out_f > 0 else -1
+            n = sign * c
+            d = n @ W0[i, j]
+            if d < -pen or d > tolerance:
+                continue
+            # the plane must separate the two wedges locally
+            if np.any(fixed.edge_face_inward[fe] @ n > sin_tol):
+                continue
+            if np.any((moving.edge_face_inward[me] @ R.T) @ n < -sin_tol):
+                continue
+            pairs.append(ContactPair(EDGE, me, EDGE, fe, sign))
+    return pairs
+
+
+def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray, t: np.ndarray,
+                            tolerance: float, pen: float, margin: float, sin_tol: float
+                            ) -> List[Tuple[int, int]]:
+    """(vertex of ``vpoly``, face of ``fpoly``) pairs in contact; ``R, t`` map ``vpoly``'s
+    frame into ``fpoly``'s."""
+    idx = vpoly.feature_vertices
+    V = vpoly.vertices[idx] @ R.T + t
+    near = fpoly.in_bbox(V, margin)
+    if not np.any(near):
+        return []
+    idx, V = idx[near], V[near]
+    D = V @ fpoly.face_normals.T - fpoly.face_offsets
+    ci, cf = np.nonzero((D >= -pen) & (D <= tolerance))
+    if len(ci) == 0:
+        return []
+    Q = V[ci] - D[ci, cf][:, None] * fpoly.face_normals[cf]
+    ok = np.zeros(len(ci), dtype=bool)
+    for f in np.unique(cf):
+        sel = cf == f
+        ok[sel] = fpoly.face_distance(int(f), Q[sel]) <= margin
+    out = []
+    for k in np.flatnonzero(ok):
+        v, f = int(idx[ci[k]]), int(cf[k])
+        dirs = vpoly.vertex_edge_dirs[v] @ R.T
+        if np.any(dirs @ fpoly.face_normals[f] < -sin_tol) and _cone_enters(
+                V[ci[k]], dirs, vpoly.vertex_edge_lengths[v], fpoly, pen, sin_tol):
+            continue
+        out.append((v, f))
+    return out
+
+
+def _cone_enters(apex: np.ndarray, dirs: np.ndarray, lengths: np.ndarray, other: Polyhedron,
+                 depth: float, sin_tol: float) -> bool:
+    """True when an edge leaving ``apex`` runs into the interior of ``other``.
+
+    A point a quarter along each edge (at most 10 mm) is tested; it must be inside ``other``
+    deeper than the allowed ``depth`` plus the angular slack. Points on ``other``'s surface
+    (an edge lying along a face of the other solid) do not count.
+    """
+    delta = np.minimum(0.25 * lengths, 0.01)
+    q = apex + delta[:, None] * dirs
+    box = other.in_bbox(q)
+    if not np.any(box):
+        return False
+    q, delta = q[box], delta[box]
+    inside = other.contains(q) > 0.5 + 1e-3
+    if not np.any(inside):
+        return False
+    dist = other.distance_to_surface(q[inside])
+    return bool(np.any(dist > depth + delta[inside] * sin_tol + 1e-9))
+
+
+def penetration_depth(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
+                      T_fixed: np.ndarray, spacing: float = 0.005) -> float:
+    """Largest interpenetration depth [m] between the two solids (0 when none).
+
+    Vertices and points sampled every ``spacing`` [m] along the edges of each solid are tested
+    for inclusion in the other (winding number); the depth of an included point is its distance
+    to the other's surface. Edge-sampled, so an interpenetration thinner than ``spacing`` along
+    an edge with no vertex inside can be underestimated.
+    """
+    T_rel = relative_pose(T_moving, T_fixed)
+    T_inv = invert_transform(T_rel)
+    depth = 0.0
+    for pts, other in ((transform_points(T_rel, moving.edge_samples(spacing)), fixed),
+                       (transform_points(T_inv, fixed.edge_samples(spacing)), moving)):
+        pts = pts[other.in_bbox(pts)]
+        if len(pts) == 0:
+            continue
+        inside = other.contains(pts) > 0.5 + 1e-6
+        if np.any(inside):
+            depth = max(depth, float(other.distance_to_surface(pts[inside]).max()))
+    return depth

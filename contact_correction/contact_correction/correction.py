@@ -1,0 +1,231 @@
+"""One-call vision error correction of a moving object's pose with contact relations.
+
+:func:`correct_pose` chains Section 3's steps -- contact relation (detected or given), the
+non-linear correction, then (optionally) the optimal linear correction -- and guards them: bad
+input (non-rotation matrices, NaN, no contact, a relation that cannot be met, a pose far from
+the relation, remaining penetration) never raises; the observed pose is passed through
+unchanged with ``corrected=False`` and a ``status`` naming the reason.
+
+Poses are 4x4 matrices in any common frame (e.g. the left camera's optical frame); all
+directions, contact points and normals in the result are in the fixed object's model frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import time
+from typing import List, Optional, Sequence
+
+import numpy as np
+
+from stereo_manip_tools.transforms import check_transform, rotation_log
+
+from .contact_relation import (
+    ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts,
+    off_element_distance, penetration_depth, relative_pose)
+from .nonlinear_correction import correct_nonlinear
+from .optimal_correction import (
+    ConstraintDirections, constraint_directions, constraint_matrix, correct_optimal)
+from .polyhedron import Polyhedron
+
+__all__ = ['CorrectionResult', 'correct_pose']
+
+
+@dataclass
+class CorrectionResult:
+    """Outcome of :func:`correct_pose` for one frame.
+
+    :ivar T_moving: corrected pose of the moving object (4x4, input frame); the observed pose,
+        unchanged, when ``corrected`` is False.
+    :ivar T_nonlinear: pose after the non-linear step (None if it did not run).
+    :ivar corrected: True when a correction was applied.
+    :ivar status: method and rank case, or why the pose was passed through.
+    :ivar method: 'optimal/<rank rule>', 'nonlinear' or 'passthrough'.
+    :ivar pairs: the contact relation used.
+    :ivar directions: constrained / free directions (fixed frame), None without contacts.
+    :ivar geometry: contact distances, points, normals at the returned pose (fixed frame).
+    :ivar penetration_before: penetration depth at the observed pose [m] (nan if unchecked).
+    :ivar penetration_after: penetration depth at the returned pose [m] (nan if unchecked).
+    :ivar max_residual: largest |contact distance| at the returned pose [m].
+    :ivar translation_change: change of the moving origin in the fixed frame [m], (3,).
+    :ivar rotation_change: rotation vector of the orientation change, fixed frame [rad], (3,).
+    :ivar elapsed: wall time of the correction [s].
+    """
+
+    T_moving: np.ndarray
+    T_nonlinear: Optional[np.ndarray] = None
+    corrected: bool = False
+    status: str = ''
+    method: str = 'passthrough'
+    pairs: List[ContactPair] = field(default_factory=list)
+    directions: Optional[ConstraintDirections] = None
+    geometry: Optional[ContactGeometry] = None
+    penetration_before: float = float('nan')
+    penetration_after: float = float('nan')
+    max_residual: float = float('nan')
+    translation_change: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    rotation_change: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    elapsed: float = 0.0
+
+    @property
+    def rotation_rank(self) -> int:
+        """Rank of Eq. 3 (0 without contacts)."""
+        return self.directions.rotation_rank if self.directions is not None else 0
+
+    @property
+    def constraint_rank(self) -> int:
+        """Rank of Eq. 2 (0 without contacts)."""
+        return self.directions.constraint_rank if self.directions is not None else 0
+
+
+def _near_degenerate(A: np.ndarray, length_scale: float, lo: float = 1e-9,
+                     hi: float = 1e-4) -> bool:
+    """True when Eq. 2's matrix has a singular value that is neither clearly zero nor clearly
+    non-zero (relative to the largest, rotation columns divided by ``length_scale``): the
+    pose sits at (or next to) a degenerate configuration of the relation."""
+    if len(A) == 0:
+        return False
+    s = np.linalg.svd(np.hstack([A[:, :3] / length_scale, A[:, 3:]]), compute_uv=False)
+    r = s / max(s[0], 1e-300)
+    return bool(np.any((r > lo) & (r < hi)))
+
+
+def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
+                 T_fixed: np.ndarray, pairs: Optional[Sequence[ContactPair]] = None, *,
+                 optimal: bool = True, tolerance: float = 2e-3,
+                 penetration_tolerance: Optional[float] = None,
+                 angle_tolerance: float = 0.1, max_translation: float = 0.02,
+                 max_rotation: float = 0.35, residual_tolerance: float = 1e-7,
+                 check_penetration: bool = True, penetration_spacing: float = 0.005,
+                 element_margin: float = 1e-6,
+                 rank1_method: str = 'auto') -> CorrectionResult:
+    """Correct the observed pose of the moving object with the contact relation.
+
+    :param moving: moving object's polyhedron.
+    :param fixed: fixed object's polyhedron.
+    :param T_moving: observed pose of the moving object (4x4).
+    :param T_fixed: pose of the fixed object in the same frame (4x4).
+    :param pairs: the contact relation; None = detect it at the observed pose.
+    :param optimal: also apply the optimal linear correction (Eqs. 2-9).
+    :param tolerance: contact detection distance [m].
+    :param penetration_tolerance: deepest interpenetration counted as contact when detecting
+        [m] (default ``tolerance``).
+    :param angle_tolerance: detection angle slack [rad].
+    :param max_translation: largest accepted change of the moving origin [m]; a larger one
+        means the pose is far from the relation: passed through.
+    :param max_rotation: largest accepted orientation change [rad].
+    :param residual_tolerance: largest accepted contact residual after correction [m].
+    :param check_penetration: measure penetration before and after (costs time).
+    :param penetration_spacing: edge sampling step of the penetration test [m].
+    :param rank1_method: see :func:`correct_optimal`.
+    :param element_margin: largest accepted distance [m] of a corrected contact point outside
+        its bounded elements (the relation must be realised, not only its planes).
+    """
+    t0 = time.perf_counter()
+    raw = np.array(T_moving, dtype=float, copy=True) if np.size(T_moving) == 16 \
+        else np.asarray(T_moving, dtype=float)
+
+    def passthrough(status: str, **kw) -> CorrectionResult:
+        res = CorrectionResult(T_moving=raw, corrected=False, status=status, **kw)
+        if res.pairs:
+            try:    # report the relation's distances at the observed (returned) pose
+                res.geometry = evaluate_contacts(moving, fixed, relative_pose(raw, T_fixed),
+                                                 res.pairs)
+                res.max_residual = float(np.max(np.abs(res.geometry.distances)))
+            except (ValueError, np.linalg.LinAlgError):
+                pass
+        res.elapsed = time.perf_counter() - t0
+        return res
+
+    try:
+        Tm = check_transform(T_moving, 'moving pose')
+        Tf = check_transform(T_fixed, 'fixed pose')
+    except ValueError as exc:
+        return passthrough(f'invalid input: {exc}')
+    T_rel_E = relative_pose(Tm, Tf)
+    if pairs is None:
+        pairs = detect_contact_relation(moving, fixed, Tm, Tf, tolerance,
+                                        penetration_tolerance, angle_tolerance)
+    pairs = list(pairs)
+    pen_before = (penetration_depth(moving, fixed, Tm, Tf, penetration_spacing)
+                  if check_penetration else float('nan'))
+    if not pairs:
+        return passthrough('no contact: no element pair within tolerance '
+                           f'{tolerance:.3g} m; pose passed through',
+                           penetration_before=pen_before)
+    L = max(moving.size, 1e-6)
+
+    def solve(length_scale: Optional[float], schedule: tuple):
+        nl = correct_nonlinear(moving, fixed, T_rel_E, pairs, length_scale=length_scale,
+                               anchor_schedule=schedule)
+        if not nl.converged or nl.max_residual > residual_tolerance:
+            return nl, None, '', '', None
+        T_rel, method, status = nl.T_rel, 'nonlinear', 'non-linear correction'
+        if optimal:
+            opt = correct_optimal(moving, fixed, T_rel_E, nl.T_rel, pairs, rank1_method)
+            if opt.max_residual <= residual_tolerance:
+                T_rel = opt.T_rel
+                method = f'optimal/{opt.method}'
+                status = (f'optimal correction ({opt.method}, rotation rank '
+                          f'{opt.directions.rotation_rank})')
+            else:
+                status = (f'optimal correction ({opt.method}) left residual '
+                          f'{opt.max_residual:.3g} m; non-linear result kept')
+        A, geom = constraint_matrix(moving, fixed, T_rel, pairs)
+        return nl, T_rel, method, status, (A, geom)
+
+    try:
+        nl, T_rel, method, status, cm = solve(None, (3e-2, 3e-3))
+        if cm is not None and _near_degenerate(cm[0], L):
+            # the non-linear step reached a degenerate configuration of the relation (e.g.
+            # a peg just inside a hole pulled up to the rim, where it may tilt): retry with
+            # rotations cheaper and a stronger pull towards the observation
+            nl2, T2, m2, s2, cm2 = solve(moving.size / 16.0, (1e-1, 3e-2, 3e-3, 3e-4))
+            if cm2 is not None:
+                nl, T_rel, method, status, cm = nl2, T2, m2, s2 + ' (retried)', cm2
+    except ValueError as exc:
+        return passthrough(f'invalid contact relation: {exc}', pairs=pairs,
+                           penetration_before=pen_before)
+    if cm is None:
+        return passthrough(f'relation not satisfiable near the observed pose (residual '
+                           f'{nl.max_residual:.3g} m); pose passed through', pairs=pairs,
+                           penetration_before=pen_before)
+    A, geom = cm
+    dirs = constraint_directions(A, L)
+    T_nl = Tf @ nl.T_rel
+    if _near_degenerate(A, L):
+        return passthrough(
+            f'{method} correction reached a degenerate configuration of the relation (Eq. 2 '
+            'nearly loses rank: e.g. pulled to the rim of a hole); pose passed through',
+            pairs=pairs, directions=dirs, penetration_before=pen_before, T_nonlinear=T_nl)
+    dt = T_rel[:3, 3] - T_rel_E[:3, 3]
+    dr = rotation_log(T_rel[:3, :3] @ T_rel_E[:3, :3].T)
+    T_out = Tf @ T_rel
+    if np.linalg.norm(dt) > max_translation or np.linalg.norm(dr) > max_rotation:
+        return passthrough(
+            f'pose far from the contact relation: correction {np.linalg.norm(dt):.3g} m / '
+            f'{np.linalg.norm(dr):.3g} rad exceeds {max_translation:.3g} m / '
+            f'{max_rotation:.3g} rad; pose passed through', pairs=pairs, directions=dirs,
+            penetration_before=pen_before, T_nonlinear=T_nl)
+    off = off_element_distance(moving, fixed, T_rel, pairs)
+    if off.max(initial=0.0) > element_margin:
+        k = int(np.argmax(off))
+        return passthrough(
+            f'{method} correction meets the contact planes but contact {k} ({pairs[k]}) lies '
+            f'{off[k]:.3g} m outside its elements (e.g. a free coordinate kept as observed '
+            'is outside the range where the relation exists); pose passed through',
+            pairs=pairs, directions=dirs, penetration_before=pen_before, T_nonlinear=T_nl)
+    pen_after = (penetration_depth(moving, fixed, T_out, Tf, penetration_spacing)
+                 if check_penetration else float('nan'))
+    if check_penetration and pen_after > max(residual_tolerance, 1e-6):
+        return passthrough(
+            f'penetration {pen_after:.3g} m remains after {method} correction (relation '
+            'incomplete?); pose passed through', pairs=pairs, directions=dirs,
+            penetration_before=pen_before, penetration_after=pen_after, T_nonlinear=T_nl)
+    res = CorrectionResult(
+        T_moving=T_out, T_nonlinear=T_nl, corrected=True, status=status, method=method,
+        pairs=pairs, directions=dirs, geometry=geom, penetration_before=pen_before,
+        penetration_after=pen_after, max_residual=float(np.max(np.abs(geom.distances))),
+        translation_change=dt, rotation_change=dr)
+    res.elapsed = time.perf_counter() - t0
+    return res
