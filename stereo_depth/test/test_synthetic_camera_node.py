@@ -1,0 +1,192 @@
+"""synthetic_camera node: parameters, synchronized publishing, CameraInfo geometry (in-process
+and as its own process from the install tree)."""
+
+import time
+
+import numpy as np
+import pytest
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image
+from stereo_msgs.msg import DisparityImage
+
+from stereo_manip_tools.conversions import image_to_numpy, stereo_parameters_from_camera_info
+from stereo_manip_tools.testing import start_executable, spin_until
+from stereo_depth.synthetic_camera_node import SyntheticCameraNode, validate_parameter
+
+SMALL = [Parameter('width', value=160), Parameter('height', value=120),
+         Parameter('fx', value=150.0), Parameter('rate', value=20.0)]
+
+
+def test_validate_parameter_reasons():
+    assert 'fx' in validate_parameter('fx', 0.0, {})
+    assert 'unknown scene' in validate_parameter('scene', 'kitchen', {})
+    assert 'rate' in validate_parameter('rate', -5.0, {})
+    assert 'baseline' in validate_parameter('baseline', 0.0, {})
+    assert 'encoding' in validate_parameter('encoding', 'bgr16', {})
+    assert validate_parameter('left_file', '', {'source': 'files'}) is not None
+    assert validate_parameter('scene', 'primitives', {}) is None
+    assert validate_parameter('fx', 500.0, {}) is None
+
+
+class _Collector:
+    def __init__(self, node, topics):
+        self.msgs = {t: [] for t in topics}
+        self.subs = [node.create_subscription(mt, t, self.msgs[t].append, 10)
+                     for t, mt in topics.items()]
+
+
+def _spin_both(cam, obs, pred, timeout):
+    ex = SingleThreadedExecutor(context=obs.context)
+    ex.add_node(cam)
+    ex.add_node(obs)
+    try:
+        end = time.monotonic() + timeout
+        while not pred() and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.02)
+        return pred()
+    finally:
+        ex.remove_node(cam)
+        ex.remove_node(obs)
+        ex.shutdown()
+
+
+@pytest.mark.ros
+def test_node_refuses_bad_parameters_on_set_and_keeps_running(ros_node):
+    cam = SyntheticCameraNode(context=ros_node.context, parameter_overrides=SMALL)
+    try:
+        for name, value, word in (('fx', 0.0, 'fx'), ('rate', -1.0, 'rate'),
+                                  ('scene', 'nope', 'unknown scene'),
+                                  ('baseline', 0.0, 'baseline')):
+            res = cam.set_parameters([Parameter(name, value=value)])[0]
+            assert not res.successful and word in res.reason, (name, res.reason)
+        assert cam.get_parameter('fx').value == 150.0
+        assert cam.set_parameters([Parameter('scene', value='primitives')])[0].successful
+        c = _Collector(ros_node, {'objects/torus/pose_truth': PoseStamped,
+                                  'left/image_rect': Image})
+        assert _spin_both(cam, ros_node, lambda: len(c.msgs['objects/torus/pose_truth']) >= 1
+                          and len(c.msgs['left/image_rect']) >= 1, 30)
+        img = c.msgs['left/image_rect'][-1]
+        assert (img.width, img.height, img.encoding) == (160, 120, 'mono8')
+    finally:
+        cam.destroy_node()
+
+
+@pytest.mark.ros
+def test_node_publishes_synchronized_pair_and_truth_in_process(ros_node):
+    cam = SyntheticCameraNode(context=ros_node.context, parameter_overrides=SMALL + [
+        Parameter('scene', value='revolute_pair'), Parameter('encoding', value='rgb8')])
+    topics = {'left/image_rect': Image, 'right/image_rect': Image,
+              'left/camera_info': CameraInfo, 'right/camera_info': CameraInfo,
+              'objects/link_arm/pose_truth': PoseStamped, 'depth_truth': Image,
+              'disparity_truth': DisparityImage, 'occlusion_truth': Image}
+    try:
+        c = _Collector(ros_node, topics)
+        assert _spin_both(cam, ros_node, lambda: all(len(v) >= 3 for v in c.msgs.values()), 40)
+    finally:
+        cam.destroy_node()
+    m = c.msgs
+    stamps = [[(x.header.stamp.sec, x.header.stamp.nanosec) for x in m[t][:3]] for t in topics]
+    assert all(s == stamps[0] for s in stamps), 'stamps differ between topics'
+    assert len(set(stamps[0])) == 3
+    left = image_to_numpy(m['left/image_rect'][0])
+    assert left.shape == (120, 160, 3) and left.dtype == np.uint8
+    params = stereo_parameters_from_camera_info(m['left/camera_info'][0],
+                                                m['right/camera_info'][0])
+    assert params.baseline == pytest.approx(0.10) and params.fx == 150.0
+    assert m['left/camera_info'][0].header.frame_id == 'stereo_left_optical'
+    assert m['right/camera_info'][0].header.frame_id == 'stereo_right_optical'
+    depth = image_to_numpy(m['depth_truth'][0])
+    disp = m['disparity_truth'][0]
+    d = image_to_numpy(disp.image)
+    ok = np.isfinite(depth)
+    np.testing.assert_allclose(d[ok], disp.f * disp.t / depth[ok], rtol=1e-6)
+    assert np.all(d[~ok] < disp.min_disparity)
+
+
+@pytest.mark.ros
+def test_node_motorcycle_source(ros_node):
+    cam = SyntheticCameraNode(context=ros_node.context, parameter_overrides=[
+        Parameter('source', value='motorcycle'), Parameter('rate', value=10.0)])
+    try:
+        c = _Collector(ros_node, {'left/image_rect': Image, 'right/camera_info': CameraInfo,
+                                  'left/camera_info': CameraInfo,
+                                  'disparity_truth': DisparityImage})
+        assert _spin_both(cam, ros_node, lambda: all(len(v) >= 1 for v in c.msgs.values()), 30)
+    finally:
+        cam.destroy_node()
+    img = c.msgs['left/image_rect'][0]
+    assert (img.width, img.height) == (741, 500)
+    Pl = np.reshape(c.msgs['left/camera_info'][0].p, (3, 4))
+    Pr = np.reshape(c.msgs['right/camera_info'][0].p, (3, 4))
+    assert Pl[0, 0] == pytest.approx(994.978) and Pl[0, 2] == pytest.approx(311.193)
+    assert Pr[0, 2] - Pl[0, 2] == pytest.approx(31.086)       # Middlebury doffs
+    assert -Pr[0, 3] / Pr[0, 0] == pytest.approx(0.193001)
+    d = image_to_numpy(c.msgs['disparity_truth'][0].image)
+    assert np.mean(d >= 0) > 0.9 and np.nanmax(d) < 70
+
+
+@pytest.mark.process
+def test_executable_publishes_synchronized_pair(ros_node):
+    topics = {'left/image_rect': Image, 'right/image_rect': Image,
+              'left/camera_info': CameraInfo, 'right/camera_info': CameraInfo,
+              'objects/peg/pose_truth': PoseStamped}
+    c = _Collector(ros_node, topics)
+    with start_executable('stereo_depth', 'synthetic_camera',
+                          ros_args=['-p', 'rate:=15.0', '-p', 'baseline:=0.12'],
+                          observer=ros_node, wait_for_node='synthetic_camera', timeout=60) as proc:
+        ok = spin_until(ros_node, lambda: all(len(v) >= 5 for v in c.msgs.values()), 60)
+        assert ok, proc.output()
+        assert proc.running()
+    m = c.msgs
+    # Match by stamp: every left image has a right image and both infos with the same stamp.
+    key = {t: {(x.header.stamp.sec, x.header.stamp.nanosec) for x in m[t]} for t in topics}
+    common = set.intersection(*key.values())
+    assert len(common) >= 3, 'no synchronized frames'
+    left, right = m['left/image_rect'][0], m['right/image_rect'][0]
+    assert (left.width, left.height, left.encoding) == (640, 480, 'mono8')
+    assert (right.width, right.height) == (640, 480)
+    Pr = np.reshape(m['right/camera_info'][0].p, (3, 4))
+    assert -Pr[0, 3] / Pr[0, 0] == pytest.approx(0.12)
+    assert m['objects/peg/pose_truth'][0].header.frame_id == 'stereo_left_optical'
+
+
+@pytest.mark.process
+def test_executable_refuses_bad_parameter_at_startup():
+    for args, word in ((['-p', 'scene:=nope'], 'unknown scene'), (['-p', 'fx:=0.0'], 'fx'),
+                       (['-p', 'rate:=-2.0'], 'rate')):
+        with start_executable('stereo_depth', 'synthetic_camera', ros_args=args) as proc:
+            try:
+                code = proc.process.wait(60)
+            except Exception:  # noqa: BLE001 - report the output on a hang
+                pytest.fail(f'{args}: still running; output:\n{proc.output()}')
+            out = proc.output()
+        assert code == 2, out
+        assert 'refused to start' in out and word in out, out
+
+
+@pytest.mark.ros
+def test_node_files_source_and_ground_truth_switch(ros_node, tmp_path):
+    import cv2
+    from stereo_depth.synthetic import render
+    left, right, _ = render('primitives', 5, seed=1)
+    cv2.imwrite(str(tmp_path / 'l.png'), left)
+    cv2.imwrite(str(tmp_path / 'r.png'), right)
+    cam = SyntheticCameraNode(context=ros_node.context, parameter_overrides=[
+        Parameter('source', value='files'), Parameter('left_file', value=str(tmp_path / 'l.png')),
+        Parameter('right_file', value=str(tmp_path / 'r.png')), Parameter('rate', value=20.0),
+        Parameter('ground_truth', value=False)])
+    try:
+        c = _Collector(ros_node, {'left/image_rect': Image, 'right/camera_info': CameraInfo,
+                                  'depth_truth': Image})
+        assert _spin_both(cam, ros_node, lambda: len(c.msgs['left/image_rect']) >= 3, 30)
+        assert c.msgs['depth_truth'] == []  # ground truth switched off
+        np.testing.assert_array_equal(image_to_numpy(c.msgs['left/image_rect'][0]), left)
+        Pr = np.reshape(c.msgs['right/camera_info'][0].p, (3, 4))
+        assert -Pr[0, 3] / Pr[0, 0] == pytest.approx(0.10)
+        # Switching to files without a path is refused with a reason.
+        res = cam.set_parameters([Parameter('left_file', value='')])[0]
+        assert not res.successful and 'left_file' in res.reason
+    finally:
+        cam.destroy_node()
