@@ -1,1 +1,3 @@
-"""Joint parameters and corrected trajectories from two links' pose tracks (Eqs. 10-18), with automatic joint type selection."""
+"""Joint parameters and corrected trajectories from two links' pose tracks (Eqs. 10-18), with
+automatic joint type selection.
+"""

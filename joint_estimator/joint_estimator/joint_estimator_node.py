@@ -1,0 +1,360 @@
+"""``joint_estimator_node``: joint between two links estimated from their pose tracks.
+
+Input (parameter ``input_mode``, read-only):
+  - ``two_links`` (default): ``link_a_pose`` and ``link_b_pose`` (geometry_msgs/PoseStamped in a
+    common frame; sensor-data QoS with a queue of 100), paired by stamp within
+    ``sync_tolerance`` [s];
+  - ``relative``: ``relative_pose`` (PoseStamped of link A in link B's frame).
+The relative poses ``^B T_A`` of the last ``window_size`` pairs are kept; every
+``estimate_every`` new poses (once ``min_poses`` are in the window) the joint is estimated
+(:func:`joint_estimator.selection.estimate_joint`, in the subscription callback: automatic
+selection over a 200-pose window takes ~0.1-0.5 s, so raise ``estimate_every`` for fast
+streams) and published:
+  - ``joint_estimate`` (stereo_manip_msgs/JointEstimate; header frame = link B),
+  - ``corrected_pose`` (PoseStamped: newest pose of link A in link B, corrected onto the joint),
+  - ``corrected_track`` (nav_msgs/Path: the corrected window),
+  - ``joint_marker`` (visualization_msgs/Marker for RViz: the axis as a red line, the
+    spherical centre as a sphere, the planar normal as an arrow; deleted for a fixed joint).
+Service ``estimate_joint`` (stereo_manip_msgs/EstimateJoint) estimates from a batch.
+
+Bad input (NaN, zero quaternion, stamps going backwards, unpaired poses) is logged with the
+reason and counted; the counts are in every JointEstimate's ``status``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import List, Optional
+
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
+    ParameterType, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data, QoSProfile
+from std_msgs.msg import ColorRGBA, Header
+from stereo_manip_msgs.msg import JointEstimate
+from stereo_manip_msgs.srv import EstimateJoint
+from visualization_msgs.msg import Marker
+
+from joint_estimator.common import JointType, relative_track
+from joint_estimator.selection import estimate_joint, JointEstimation
+from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
+    numpy_to_point, numpy_to_vector3, path_to_matrices, pose_stamped_to_matrix
+from stereo_manip_tools.sync import StampSynchronizer
+
+__all__ = ['JointEstimatorNode', 'estimation_to_msg', 'estimation_to_marker', 'JOINT_TYPE_NAMES',
+           'main']
+
+#: Parameter values of ``joint_type`` and their JointEstimate constants (auto: 255).
+JOINT_TYPE_NAMES = {'auto': 255, **{t.name.lower(): int(t) for t in JointType}}
+
+
+def _float(desc: str, lo: float, hi: float, read_only: bool = False) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_DOUBLE, description=desc,
+                               read_only=read_only,
+                               floating_point_range=[FloatingPointRange(from_value=lo,
+                                                                        to_value=hi)])
+
+
+def _int(desc: str, lo: int, hi: int, read_only: bool = False) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_INTEGER, description=desc,
+                               read_only=read_only,
+                               integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
+
+
+def _string(desc: str, read_only: bool = False) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_STRING, description=desc,
+                               read_only=read_only)
+
+
+def joint_position(estimation: JointEstimation) -> float:
+    """Joint coordinate of the newest pose: angle [rad] (revolute, cylindrical, planar),
+    displacement [m] (prismatic), rotation angle [rad] (spherical), 0 (fixed)."""
+    best = estimation.best
+    if best.coordinates.shape[1] == 0:
+        return 0.0
+    if best.joint_type == JointType.SPHERICAL:
+        return float(np.linalg.norm(best.coordinates[-1]))
+    return float(best.coordinates[-1, 0])
+
+
+def estimation_to_msg(estimation: JointEstimation, header: Header, link_a_frame: str,
+                      link_b_frame: str) -> JointEstimate:
+    """JointEstimate message of an estimation (RMS residuals over the inlier frames)."""
+    b = estimation.best
+    msg = JointEstimate(header=header, joint_type=int(b.joint_type), link_a_frame=link_a_frame,
+                        link_b_frame=link_b_frame)
+    msg.axis_in_a = numpy_to_vector3(b.axis_in_a)
+    msg.axis_in_b = numpy_to_vector3(b.axis_in_b)
+    msg.point_in_a = numpy_to_point(b.point_in_a)
+    msg.point_in_b = numpy_to_point(b.point_in_b)
+    msg.rotation_residual = b.rotation_rms
+    msg.position_residual = b.position_rms
+    msg.sample_count = int(b.inliers.size)
+    msg.outlier_count = int(b.outlier_indices.size)
+    msg.candidate_types = [int(t) for t in estimation.candidates]
+    msg.candidate_scores = [float(f.score) for f in estimation.candidates.values()]
+    msg.joint_position = joint_position(estimation)
+    msg.status = estimation.status
+    return msg
+
+
+def estimation_to_marker(estimation: JointEstimation, header: Header) -> Marker:
+    """RViz marker of the estimated joint in link B's frame (see the module docstring)."""
+    b = estimation.best
+    m = Marker(header=header, ns='joint_estimator', id=0, action=Marker.ADD,
+               color=ColorRGBA(r=1.0, g=0.0, b=0.0, a=1.0))
+    m.pose.orientation.w = 1.0
+    p = b.corrected[:, :3, 3]
+    if b.joint_type in (JointType.REVOLUTE, JointType.CYLINDRICAL, JointType.PRISMATIC):
+        s = (p - b.point_in_b) @ b.axis_in_b
+        m.type, m.scale.x = Marker.LINE_LIST, 0.005
+        m.points = [numpy_to_point(b.point_in_b + v * b.axis_in_b)
+                    for v in (s.min() - 0.1, s.max() + 0.1)]
+    elif b.joint_type == JointType.SPHERICAL:
+        m.type = Marker.SPHERE
+        m.scale.x = m.scale.y = m.scale.z = 0.02
+        m.pose.position = numpy_to_point(b.point_in_b)
+    elif b.joint_type == JointType.PLANAR:
+        m.type, m.scale.x, m.scale.y, m.scale.z = Marker.ARROW, 0.005, 0.01, 0.02
+        c = p.mean(axis=0)
+        m.points = [numpy_to_point(c), numpy_to_point(c + 0.1 * b.axis_in_b)]
+    else:
+        m.action = Marker.DELETE
+    return m
+
+
+class JointEstimatorNode(Node):
+    """Sliding-window joint estimation; thin wrapper around :mod:`joint_estimator.selection`."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('joint_estimator', **kwargs)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.declare_parameter('input_mode', 'two_links', _string(
+            "'two_links' (link_a_pose + link_b_pose in a common frame) or 'relative' "
+            '(relative_pose: link A in link B)', read_only=True))
+        self.declare_parameter('link_a_frame', 'link_a', _string('name of link A\'s frame'))
+        self.declare_parameter('link_b_frame', '', _string(
+            "name of link B's frame (frame_id of the outputs); empty: relative_pose's "
+            "frame_id (relative mode) or 'link_b'"))
+        self.declare_parameter('window_size', 200, _int(
+            'relative poses kept in the sliding window', 3, 100000, read_only=True))
+        self.declare_parameter('min_poses', 10, _int(
+            'poses needed in the window before estimating', 2, 100000))
+        self.declare_parameter('estimate_every', 5, _int(
+            'estimate after every this many new poses', 1, 100000))
+        self.declare_parameter('joint_type', 'auto', _string(
+            'joint type to fit: auto (BIC selection), fixed, revolute, prismatic, spherical, '
+            'cylindrical or planar'))
+        self.declare_parameter('sigma_position', 0.005, _float(
+            'position noise std per axis of the pose tracks [m]', 1e-6, 1.0))
+        self.declare_parameter('sigma_rotation', float(np.deg2rad(2.0)), _float(
+            'orientation noise std per axis of the pose tracks [rad]', 1e-6, 1.0))
+        self.declare_parameter('robust', True, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description='reject outlier frames (MSAC over minimal sets + refit)'))
+        self.declare_parameter('refine', True, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description='maximum-likelihood refinement of revolute/cylindrical axes; false: '
+                        'the chapter\'s Eqs. 17-18 only'))
+        self.declare_parameter('correction', 'ml', _string(
+            "corrected track: 'ml' (weighted projection on the joint) or 'chapter' "
+            '(revolute: minimal-rotation correction of Section 4)'))
+        self.declare_parameter('min_rotation_range', float(np.deg2rad(10.0)), _float(
+            'rotation range below which an axis is undefined (degenerate motion) [rad]',
+            0.0, np.pi))
+        self.declare_parameter('min_translation_range', 0.02, _float(
+            'translation range below which a sliding direction is undefined [m]', 0.0, 10.0))
+        self.declare_parameter('sync_tolerance', 0.005, _float(
+            'largest stamp difference when pairing link_a_pose with link_b_pose [s]', 0.0, 1.0,
+            read_only=True))
+
+        self.window: deque = deque(maxlen=int(self.get_parameter('window_size').value))
+        self.counts = {'received': 0, 'rejected': 0, 'estimates': 0, 'failed_estimates': 0}
+        self._new_since_estimate = 0
+        self._last_b_frame = ''
+        self.estimate_pub = self.create_publisher(JointEstimate, 'joint_estimate', 10)
+        self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
+        self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
+        self.marker_pub = self.create_publisher(Marker, 'joint_marker', 10)
+        self.create_service(EstimateJoint, 'estimate_joint', self._on_service)
+        mode = self.get_parameter('input_mode').value
+        # sensor-data QoS (best effort, matches any publisher) with room for the poses that
+        # arrive while an estimate is being computed
+        qos = QoSProfile(depth=100, reliability=qos_profile_sensor_data.reliability,
+                         durability=qos_profile_sensor_data.durability,
+                         history=qos_profile_sensor_data.history)
+        self.sync: Optional[StampSynchronizer] = None
+        if mode == 'relative':
+            self.create_subscription(PoseStamped, 'relative_pose', self._on_relative, qos)
+        else:
+            tol = int(round(self.get_parameter('sync_tolerance').value * 1e9))
+            self.sync = StampSynchronizer(('a', 'b'), tolerance_ns=tol, queue_size=50)
+            self.create_subscription(PoseStamped, 'link_a_pose',
+                                     lambda m: self._on_link(m, 'a'), qos)
+            self.create_subscription(PoseStamped, 'link_b_pose',
+                                     lambda m: self._on_link(m, 'b'), qos)
+        self.get_logger().info(f'joint_estimator: input {mode}, window '
+                               f'{self.window.maxlen}, joint type '
+                               f'{self.get_parameter("joint_type").value}')
+
+    # --- parameters -----------------------------------------------------------------------
+
+    def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
+        """Checks beyond the descriptors' ranges (choices of the string parameters)."""
+        for p in params:
+            if p.name == 'input_mode' and p.value not in ('two_links', 'relative'):
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"input_mode must be 'two_links' or 'relative', got {p.value!r}")
+            if p.name == 'joint_type' and p.value not in JOINT_TYPE_NAMES:
+                return SetParametersResult(
+                    successful=False, reason=f'joint_type must be one of '
+                    f'{", ".join(JOINT_TYPE_NAMES)}, got {p.value!r}')
+            if p.name == 'correction' and p.value not in ('ml', 'chapter'):
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"correction must be 'ml' or 'chapter', got {p.value!r}")
+        return SetParametersResult(successful=True)
+
+    def _estimate(self, poses: np.ndarray, stamps: np.ndarray,
+                  joint_type: Optional[int] = None) -> JointEstimation:
+        g = self.get_parameter
+        if joint_type is None:
+            joint_type = JOINT_TYPE_NAMES[g('joint_type').value]
+        return estimate_joint(
+            poses, joint_type=joint_type, sigma_position=g('sigma_position').value,
+            sigma_rotation=g('sigma_rotation').value, robust=g('robust').value,
+            refine=g('refine').value, correction=g('correction').value,
+            min_rotation_range=g('min_rotation_range').value,
+            min_translation_range=g('min_translation_range').value, stamps_ns=stamps)
+
+    def _b_frame(self) -> str:
+        return self.get_parameter('link_b_frame').value or self._last_b_frame or 'link_b'
+
+    # --- streaming input ------------------------------------------------------------------
+
+    def _reject(self, what: str, why: str) -> None:
+        self.counts['rejected'] += 1
+        self.get_logger().warning(f'{what} rejected ({self.counts["rejected"]} so far): {why}')
+
+    def _on_link(self, msg: PoseStamped, key: str) -> None:
+        self.counts['received'] += 1
+        try:
+            T, stamp, frame = pose_stamped_to_matrix(msg)
+        except ValueError as exc:
+            self._reject(f'link_{key}_pose', str(exc))
+            return
+        del frame     # the common frame; link B's own frame name is link_b_frame
+        pair = self.sync.add(key, stamp, (T, stamp))
+        if pair is not None:
+            T_rel = relative_track(pair['a'][0][None], pair['b'][0][None])[0]
+            self._add(T_rel, max(pair['a'][1], pair['b'][1]))
+
+    def _on_relative(self, msg: PoseStamped) -> None:
+        self.counts['received'] += 1
+        try:
+            T, stamp, frame = pose_stamped_to_matrix(msg)
+        except ValueError as exc:
+            self._reject('relative_pose', str(exc))
+            return
+        self._last_b_frame = frame
+        self._add(T, stamp)
+
+    def _add(self, T: np.ndarray, stamp: int) -> None:
+        if self.window and stamp <= self.window[-1][0]:
+            self._reject('pose', f'stamp {stamp} ns is not after the previous one '
+                         f'({self.window[-1][0]} ns); stamps must increase')
+            return
+        self.window.append((stamp, T))
+        self._new_since_estimate += 1
+        g = self.get_parameter
+        if (len(self.window) >= g('min_poses').value
+                and self._new_since_estimate >= g('estimate_every').value):
+            self._new_since_estimate = 0
+            self._publish_window_estimate()
+
+    def _dropped_summary(self) -> str:
+        parts = [f'{self.counts["rejected"]} poses rejected']
+        if self.sync is not None:
+            parts.append(f'{sum(self.sync.dropped.values())} unpaired '
+                         f'({", ".join(f"{k} {v}" for k, v in self.sync.dropped.items())})')
+        return 'input: ' + ', '.join(parts)
+
+    def _publish_window_estimate(self) -> None:
+        stamps = np.array([s for s, _ in self.window], dtype=np.int64)
+        poses = np.array([T for _, T in self.window])
+        try:
+            est = self._estimate(poses, stamps)
+        except ValueError as exc:
+            self.counts['failed_estimates'] += 1
+            self.get_logger().warning(f'no estimate from {len(poses)} poses '
+                                      f'({self.counts["failed_estimates"]} so far): {exc}')
+            return
+        self.counts['estimates'] += 1
+        header = Header(stamp=ns_to_stamp(int(stamps[-1])), frame_id=self._b_frame())
+        msg = estimation_to_msg(est, header, self.get_parameter('link_a_frame').value,
+                                header.frame_id)
+        msg.status = f'{msg.status}; {self._dropped_summary()}'
+        self.estimate_pub.publish(msg)
+        self.pose_pub.publish(PoseStamped(header=header,
+                                          pose=matrix_to_pose(est.best.corrected[-1])))
+        self.track_pub.publish(matrices_to_path(est.best.corrected, header.frame_id, stamps))
+        self.marker_pub.publish(estimation_to_marker(est, header))
+
+    # --- service --------------------------------------------------------------------------
+
+    def _on_service(self, request: EstimateJoint.Request,
+                    response: EstimateJoint.Response) -> EstimateJoint.Response:
+        try:
+            T_a, stamps = path_to_matrices(request.link_a)
+            if request.link_b.poses:
+                T_b, stamps_b = path_to_matrices(request.link_b)
+                if T_b.shape != T_a.shape:
+                    raise ValueError(f'link_a has {len(T_a)} poses, link_b {len(T_b)}')
+                tol = self.get_parameter('sync_tolerance').value * 1e9
+                if np.any(np.abs(stamps - stamps_b) > tol):
+                    i = int(np.flatnonzero(np.abs(stamps - stamps_b) > tol)[0])
+                    raise ValueError(f'stamps of link_a and link_b differ at pose {i} '
+                                     f'({stamps[i]} vs {stamps_b[i]} ns)')
+                poses = relative_track(T_a, T_b)
+                b_frame = self.get_parameter('link_b_frame').value or 'link_b'
+            else:
+                poses = T_a
+                b_frame = (self.get_parameter('link_b_frame').value
+                           or request.link_a.header.frame_id or 'link_b')
+            jt = int(request.joint_type)
+            if jt != 255 and jt not in {int(t) for t in JointType}:
+                raise ValueError(f'joint_type {jt} is not a JointEstimate constant or AUTO (255)')
+            est = self._estimate(poses, stamps, jt)
+        except ValueError as exc:
+            response.success = False
+            response.message = str(exc)
+            self.get_logger().warning(f'estimate_joint request failed: {exc}')
+            return response
+        header = Header(stamp=ns_to_stamp(int(stamps[-1])), frame_id=b_frame)
+        response.estimate = estimation_to_msg(est, header,
+                                              self.get_parameter('link_a_frame').value, b_frame)
+        response.corrected_track = matrices_to_path(est.best.corrected, b_frame, stamps)
+        response.outlier_indices = [int(i) for i in est.best.outlier_indices]
+        response.success = True
+        response.message = est.status
+        return response
+
+
+def main(args=None) -> None:
+    """Run the node."""
+    rclpy.init(args=args)
+    node = JointEstimatorNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
