@@ -1,0 +1,330 @@
+"""Incremental Gram-Schmidt QR for the degree-adaptive implicit-polynomial fit (Section 5).
+
+Eq. 22 solves the least-squares system ``M a = b`` through ``M = QR`` as ``R a = Q^T b`` by back
+substitution. When the degree rises, the monomials of the new degree are appended to ``M`` as
+one block of columns; Gram-Schmidt works from left to right, so every column of ``Q`` and ``R``
+already computed is reused and only the new block is orthogonalised (the shaded part of
+Fig. 14).
+
+The new block is orthogonalised by block Gram-Schmidt with re-orthogonalisation: the previous
+columns of ``Q`` are projected out as BLAS-3 products (``variant='classical'``: all previous
+columns in one product, BCGS2; ``'modified'``: the previous degree blocks one after another,
+BMGS2), and a second pass is made for every column whose norm fell below 1/sqrt(2) in the first
+(the Daniel-Gragg-Kaufman-Stewart criterion; "twice is enough", Giraud et al. 2005). Inside the
+block the columns are orthogonalised the same way by recursive halving, so Python loops run
+only over groups of at most eight columns.
+
+Stability is watched through R's diagonal (Section 5; its entries bound R's singular values): a
+new column is unstable when ``|r_jj|`` is below ``stability_tol`` times the largest column
+norm so far (which bounds every ``|r_ii|``), i.e. when it would push the diagonal's condition
+estimate past ``1 / stability_tol``. An unstable column is dropped (its coefficient fixed at 0)
+or ridge-regularised (Tasdizen et al. 2000; Sahin & Unel 2005) when the system is solved.
+Columns whose orthogonal part is below 1e-12 of their own norm are rounding noise and always
+dropped.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import List, Optional
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
+
+__all__ = ['IncrementalQR', 'STABILIZATION_MODES']
+
+STABILIZATION_MODES = ('drop', 'ridge', 'none')
+
+# A column whose orthogonal part is below this fraction of its norm is rounding noise: it is
+# always dropped, whatever the stabilisation mode.
+_NOISE_FLOOR = 1e-12
+# Blocks of at most this many columns are orthogonalised column by column.
+_BASE_COLUMNS = 8
+
+
+class IncrementalQR:
+    """Thin QR factorisation ``M P = Q R`` of a matrix grown by appending column blocks.
+
+    ``P`` selects the accepted columns: columns found numerically dependent are dropped and
+    their coefficients are zero in :meth:`solve`.
+
+    :param b: right-hand side of the least-squares problem, shape (N,).
+    :param stabilization: ``'drop'`` (unstable columns ignored), ``'ridge'`` (unstable columns
+        kept and their coefficients ridge-penalised) or ``'none'`` (only exactly dependent
+        columns dropped).
+    :param stability_tol: a column is unstable when ``|r_jj|`` is below this times the largest
+        column norm seen so far.
+    :param variant: ``'classical'`` projects the new block on all previous columns in one
+        product per pass (BCGS2, fastest); ``'modified'`` projects on the previous blocks one
+        after another (BMGS2). With the second pass both are equally stable (Giraud, Langou &
+        Rozloznik 2005).
+    :param reorth_threshold: a second projection pass is made for a column whose norm falls
+        below this fraction in the first pass (1.0: always twice; 0.0: never).
+    :param capacity: initial column capacity (grown as needed).
+    """
+
+    def __init__(self, b: np.ndarray, stabilization: str = 'drop', stability_tol: float = 1e-6,
+                 variant: str = 'classical', reorth_threshold: float = 0.7071,
+                 capacity: int = 32) -> None:
+        if variant not in ('classical', 'modified'):
+            raise ValueError(f"variant must be 'classical' or 'modified', got {variant!r}")
+        self.variant = variant
+        if not 0.0 <= reorth_threshold <= 1.0:
+            raise ValueError(f'reorth_threshold must be in [0, 1], got {reorth_threshold}')
+        self.reorth_threshold = float(reorth_threshold)
+        self.reorthogonalised = 0  # columns that needed the second projection pass
+        if stabilization not in STABILIZATION_MODES:
+            raise ValueError(f'stabilization must be one of {STABILIZATION_MODES}, '
+                             f'got {stabilization!r}')
+        if not 0.0 <= stability_tol < 1.0:
+            raise ValueError(f'stability_tol must be in [0, 1), got {stability_tol}')
+        self.b = np.ascontiguousarray(b, dtype=float).reshape(-1)
+        self.n_rows = self.b.size
+        self.stabilization = stabilization
+        self.stability_tol = float(stability_tol)
+        self._Q = np.empty((self.n_rows, max(1, capacity)), order='F')
+        self._R = np.zeros((max(1, capacity), max(1, capacity)))
+        self._qtb = np.zeros(max(1, capacity))
+        self._blocks: List[slice] = []
+        self.n_columns = 0  # columns offered so far (accepted or not)
+        self._rank = 0
+        self._ref_norm = 0.0  # largest column norm so far (bounds every |r_ii|)
+        self.accepted: List[int] = []  # original column index of each Q column
+        self.dropped: List[int] = []
+        self.unstable: List[int] = []  # accepted but flagged for ridge regularisation
+        self.column_norms: List[float] = []
+        # |r_jj| / largest column norm so far, for every offered column
+        self.diagonal_ratio: List[float] = []
+
+    # ----------------------------------------------------------------------------- properties
+    @property
+    def rank(self) -> int:
+        """Number of accepted columns (columns of Q)."""
+        return self._rank
+
+    @property
+    def Q(self) -> np.ndarray:
+        """Orthonormal factor, shape (N, rank) (a view)."""
+        return self._Q[:, :self.rank]
+
+    @property
+    def R(self) -> np.ndarray:
+        """Upper-triangular factor over the accepted columns, shape (rank, rank) (a view)."""
+        return self._R[:self.rank, :self.rank]
+
+    @property
+    def qtb(self) -> np.ndarray:
+        """``Q^T b`` (Eq. 22), shape (rank,)."""
+        return self._qtb[:self.rank]
+
+    def condition_estimate(self) -> float:
+        """max |r_ii| / min |r_ii| over the accepted columns (R's diagonal, Section 5)."""
+        if self.rank == 0:
+            return float('inf')
+        d = np.abs(np.diag(self.R))
+        return float(d.max() / d.min()) if d.min() > 0 else float('inf')
+
+    # -------------------------------------------------------------------------------- growth
+    def _reserve(self, extra: int) -> None:
+        need = self.rank + extra
+        cap = self._Q.shape[1]
+        if need <= cap:
+            return
+        new_cap = max(need, 2 * cap)
+        Q = np.empty((self.n_rows, new_cap), order='F')
+        Q[:, :self.rank] = self._Q[:, :self.rank]
+        R = np.zeros((new_cap, new_cap))
+        R[:self.rank, :self.rank] = self.R
+        qtb = np.zeros(new_cap)
+        qtb[:self.rank] = self.qtb
+        self._Q, self._R, self._qtb = Q, R, qtb
+
+    def append(self, block: np.ndarray) -> np.ndarray:
+        """Append a block of columns (e.g. all monomials of the next degree) and factorise it.
+
+        :param block: (N, m) new columns of M.
+        :returns: boolean mask (m,) of the columns accepted into Q.
+        :raises ValueError: on a wrong row count or non-finite values.
+        """
+        W = np.array(block, dtype=float, order='F', copy=True)
+        if W.ndim == 1:
+            W = W[:, None]
+        if W.ndim != 2 or W.shape[0] != self.n_rows:
+            raise ValueError(f'block has shape {W.shape}, the factorisation has '
+                             f'{self.n_rows} rows')
+        if not np.all(np.isfinite(W)):
+            raise ValueError('block contains NaN or infinite values')
+        m = W.shape[1]
+        self._reserve(m)
+        k0 = self.rank
+        norms = np.linalg.norm(W, axis=0)
+        if m:
+            self._ref_norm = max(self._ref_norm, float(norms.max()))
+        # C[p, j]: coefficient of new column j on Q column p (R's new column, Eq. 22).
+        C = np.zeros((k0 + m, m))
+        if k0:
+            self._project(W, slice(0, k0), C, norms, np.arange(m))
+        status = np.zeros(m, dtype=np.int8)  # 1 accepted, 2 accepted + unstable, -1 dropped
+        positions = np.full(m, -1, dtype=np.int64)
+        self._orthogonalise_block(W, norms, C, 0, m, status, positions)
+        accepted_mask = status > 0
+        for j in range(m):
+            col = self.n_columns + j
+            self.column_norms.append(float(norms[j]))
+            if status[j] < 0:
+                self.dropped.append(col)
+                continue
+            pos = positions[j]
+            self._R[:pos, pos] = C[:pos, j]
+            self.accepted.append(col)
+            if status[j] == 2:
+                self.unstable.append(col)
+        new = slice(k0, self.rank)
+        if self.rank > k0:
+            self._blocks.append(new)
+            self._qtb[new] = self._Q[:, new].T @ self.b
+        self.n_columns += m
+        return accepted_mask
+
+    def _project(self, W: np.ndarray, rows: slice, C: np.ndarray, norms: np.ndarray,
+                 cols: np.ndarray) -> None:
+        """Project columns ``cols`` of W off Q[:, rows] (BLAS-3), re-orthogonalising as needed.
+
+        The second pass runs on the columns whose norm fell below ``reorth_threshold`` times
+        their norm before the pass (the DGKS criterion): there the first pass's rounding error,
+        about eps * ||w_before||, is no longer small relative to what is left.
+        """
+        if cols.size == 0:
+            return
+        contiguous = cols[-1] - cols[0] + 1 == cols.size
+        Wc = W[:, cols[0]:cols[-1] + 1] if contiguous else W[:, cols]
+        before = np.sqrt(np.einsum('ij,ij->j', Wc, Wc))
+        for it in range(2):
+            if self.variant == 'modified':
+                blocks = [b for b in self._blocks if b.start >= rows.start and b.stop <= rows.stop]
+                if rows.stop > (blocks[-1].stop if blocks else rows.start):
+                    blocks.append(slice(blocks[-1].stop if blocks else rows.start, rows.stop))
+            else:
+                blocks = [rows]
+            contiguous = cols[-1] - cols[0] + 1 == cols.size
+            Wc = W[:, cols[0]:cols[-1] + 1] if contiguous else W[:, cols]
+            for blk in blocks:
+                Qb = self._Q[:, blk]
+                H = Qb.T @ Wc
+                Wc -= Qb @ H
+                C[blk.start:blk.stop, cols] += H
+            if not contiguous:
+                W[:, cols] = Wc
+            after = np.sqrt(np.einsum('ij,ij->j', Wc, Wc))
+            need = after < self.reorth_threshold * before
+            self.reorthogonalised += int(np.count_nonzero(need)) if it == 0 else 0
+            if it == 0:
+                cols = cols[need]
+                before = after[need]
+                if cols.size == 0:
+                    return
+
+    def _orthogonalise_block(self, W: np.ndarray, norms: np.ndarray, C: np.ndarray, lo: int,
+                             hi: int, status: np.ndarray, positions: np.ndarray) -> None:
+        """Orthogonalise columns lo:hi of W among themselves (already orthogonal to old Q).
+
+        Recursive halving keeps the work in BLAS-3 products: the left half is factorised, the
+        right half is projected on the left half's accepted columns twice, then factorised.
+        Accepted columns are written to Q in order, with their diagonal entry of R.
+        """
+        if hi - lo <= _BASE_COLUMNS:
+            start = self.rank
+            thr = self.reorth_threshold
+            for j in range(lo, hi):
+                v = W[:, j]
+                p = self._rank - start
+                r = math.sqrt(float(v @ v))
+                if p:
+                    Qn = self._Q[:, start:self._rank]
+                    for _ in range(2):
+                        g = Qn.T @ v
+                        v -= Qn @ g
+                        C[start:self._rank, j] += g
+                        after = math.sqrt(float(v @ v))
+                        done = after >= thr * r
+                        r = after
+                        if done:
+                            break
+                rho = r / norms[j] if norms[j] > 0 else 0.0  # sine to the previous span
+                ratio = r / self._ref_norm if self._ref_norm > 0 else 0.0
+                self.diagonal_ratio.append(ratio)
+                unstable = ratio < self.stability_tol
+                if rho < _NOISE_FLOOR or (unstable and self.stabilization == 'drop'):
+                    status[j] = -1
+                    continue
+                pos = self.rank
+                self._Q[:, pos] = v / r
+                self._R[pos, pos] = r
+                status[j] = 2 if (unstable and self.stabilization == 'ridge') else 1
+                positions[j] = pos
+                self._rank += 1
+            return
+        mid = (lo + hi) // 2
+        start = self.rank
+        self._orthogonalise_block(W, norms, C, lo, mid, status, positions)
+        if self.rank > start:
+            self._project(W, slice(start, self.rank), C, norms, np.arange(mid, hi))
+        self._orthogonalise_block(W, norms, C, mid, hi, status, positions)
+
+    # --------------------------------------------------------------------------------- solve
+    def solve(self, n_columns: Optional[int] = None, ridge: float = 0.0) -> np.ndarray:
+        """Least-squares coefficients of the first ``n_columns`` offered columns (Eq. 22).
+
+        Solves ``R a = Q^T b`` by back substitution over the accepted columns; dropped columns
+        get coefficient 0. Regularisation (ridge regression, RR: Tasdizen et al. 2000; Sahin &
+        Unel 2005) adds ``sum_j (w_j * s * a_j)^2`` with ``s`` the largest column norm so far
+        and ``w_j = stability_tol`` for the unstable columns in ``'ridge'`` mode (partial RR)
+        and ``w_j = sqrt(ridge)`` for every column but the first (global RR); it is solved as a
+        small stacked least-squares problem on R, so the factorisation is still reused.
+
+        :param n_columns: number of leading columns (default: all offered so far). Because
+            columns are appended left to right, any earlier degree can be solved again.
+        :param ridge: global ridge weight (>= 0, relative to the squared column scale).
+        :returns: coefficients, shape (n_columns,).
+        """
+        n = self.n_columns if n_columns is None else int(n_columns)
+        if not 0 <= n <= self.n_columns:
+            raise ValueError(f'n_columns must be in [0, {self.n_columns}], got {n}')
+        if ridge < 0 or not np.isfinite(ridge):
+            raise ValueError(f'ridge must be finite and >= 0, got {ridge}')
+        k = int(np.searchsorted(np.asarray(self.accepted, dtype=np.int64), n))
+        a = np.zeros(n)
+        if k == 0:
+            return a
+        R = self._R[:k, :k]
+        y = self._qtb[:k]
+        cols = np.asarray(self.accepted[:k], dtype=np.int64)
+        w = np.zeros(k)
+        if ridge > 0:
+            w[cols > 0] = np.sqrt(ridge)
+        if self.unstable:
+            unstable = np.isin(cols, np.asarray(self.unstable, dtype=np.int64))
+            w[unstable] = np.maximum(w[unstable], self.stability_tol)
+        if np.any(w > 0) and w[w > 0].min() >= 1e-3:
+            # normal equations of the stacked problem: the ridge keeps cond <= k / min(w)^2
+            A = R.T @ R
+            A[np.diag_indices(k)] += (w * self._ref_norm) ** 2
+            coef = cho_solve(cho_factor(A, check_finite=False), R.T @ y, check_finite=False)
+        elif np.any(w > 0):
+            rows = np.flatnonzero(w > 0)
+            P = np.zeros((rows.size, k))
+            P[np.arange(rows.size), rows] = w[rows] * self._ref_norm
+            A = np.vstack([R, P])
+            rhs = np.concatenate([y, np.zeros(rows.size)])
+            coef = np.linalg.lstsq(A, rhs, rcond=None)[0]
+        else:
+            coef = solve_triangular(R, y, lower=False, check_finite=False)
+        a[cols] = coef
+        return a
+
+    def residual_norm(self, n_columns: Optional[int] = None) -> float:
+        """``||M a - b||`` of the plain (unregularised) solution over ``n_columns`` columns."""
+        n = self.n_columns if n_columns is None else int(n_columns)
+        k = int(np.searchsorted(np.asarray(self.accepted, dtype=np.int64), n))
+        bb = float(self.b @ self.b)
+        return float(np.sqrt(max(bb - float(self._qtb[:k] @ self._qtb[:k]), 0.0)))

@@ -1,0 +1,227 @@
+"""``ip_modeler_node``: implicit-polynomial model of a segmented object cloud (Section 5).
+
+Subscribes ``cloud`` (sensor_msgs/PointCloud2 of one object, sensor-data QoS; normals are used
+when the cloud has ``normal_x/normal_y/normal_z`` and ``use_cloud_normals`` is true, otherwise
+estimated and oriented toward ``viewpoint``). Each cloud is fitted with the adaptive-degree 3L
+fit by incremental QR (:func:`ip_modeler.fitting.fit_implicit_polynomial`) and published as
+
+  - ``implicit_polynomial`` (stereo_manip_msgs/ImplicitPolynomial, in the cloud's frame, with
+    the true RMS/max distance of the points to the zero set),
+  - ``zero_set_marker`` (visualization_msgs/Marker TRIANGLE_LIST: the zero set inside the
+    cloud's bounding box, by marching cubes).
+
+Service ``fit_implicit_polynomial`` (stereo_manip_msgs/FitImplicitPolynomial) fits a cloud on
+request (``max_degree``/``target_rms`` of 0 mean the node's parameters).
+
+Bad input (empty cloud, NaN points, too few points for the degree, planar or collinear clouds)
+is logged with the reason and counted; the node keeps running. Counts appear in every
+message's ``status``.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
+    ParameterType, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2
+from stereo_manip_msgs.msg import ImplicitPolynomial
+from stereo_manip_msgs.srv import FitImplicitPolynomial
+from visualization_msgs.msg import Marker
+
+from ip_modeler.conversions import cloud_to_points, mesh_to_marker, model_to_msg
+from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_set_mesh
+from ip_modeler.fitting import estimate_normals, fit_implicit_polynomial, \
+    MAX_SUPPORTED_DEGREE
+from ip_modeler.incremental_qr import STABILIZATION_MODES
+
+__all__ = ['IpModelerNode', 'main']
+
+
+def _float(desc: str, lo: float, hi: float, read_only: bool = False) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_DOUBLE, description=desc,
+                               read_only=read_only,
+                               floating_point_range=[FloatingPointRange(from_value=lo,
+                                                                        to_value=hi)])
+
+
+def _int(desc: str, lo: int, hi: int, read_only: bool = False) -> ParameterDescriptor:
+    return ParameterDescriptor(type=ParameterType.PARAMETER_INTEGER, description=desc,
+                               read_only=read_only,
+                               integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
+
+
+class IpModelerNode(Node):
+    """Fits implicit polynomials to object clouds; thin wrapper around :mod:`ip_modeler`."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('ip_modeler', **kwargs)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.declare_parameter('max_degree', 8, _int(
+            'highest polynomial degree tried', 1, MAX_SUPPORTED_DEGREE))
+        self.declare_parameter('target_rms', 0.001, _float(
+            'stop raising the degree once the RMS first-order distance of the points to the '
+            'zero set is at most this [m]; 0: go to max_degree and keep the best', 0.0, 10.0))
+        self.declare_parameter('offset', 0.02, _float(
+            '3L layer offset c along the normals, as a fraction of the normalisation scale',
+            0.001, 0.45))
+        self.declare_parameter('stabilization', 'drop', ParameterDescriptor(
+            type=ParameterType.PARAMETER_STRING,
+            description="columns with a small R diagonal: 'drop', 'ridge' or 'none'"))
+        self.declare_parameter('stability_tol', 1e-6, _float(
+            'R-diagonal threshold (relative to the largest column norm) for unstable columns',
+            0.0, 0.1))
+        self.declare_parameter('ridge', 1e-6, _float(
+            'global ridge-regression weight on the non-constant coefficients (0: plain LS)',
+            0.0, 1.0))
+        self.declare_parameter('min_improvement', 0.05, _float(
+            'relative RMS decrease a degree must bring to count as progress', 0.0, 1.0))
+        self.declare_parameter('patience', 3, _int(
+            'stop after this many degrees without progress', 1, MAX_SUPPORTED_DEGREE))
+        self.declare_parameter('use_cloud_normals', True, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description='use normal_x/y/z fields of the cloud when present'))
+        self.declare_parameter('normal_neighbours', 16, _int(
+            'neighbours for PCA normal estimation', 3, 500))
+        self.declare_parameter('viewpoint', [0.0, 0.0, 0.0], ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY,
+            description='sensor position [m] in the cloud frame, for orienting estimated '
+                        'normals outward (optical frame: the origin)'))
+        self.declare_parameter('max_points', 5000, _int(
+            'clouds with more points are randomly subsampled to this many (counted)',
+            10, 10_000_000))
+        self.declare_parameter('mesh_resolution', 48, _int(
+            'marching-cubes samples along the longest side of the marker box', 8, 256))
+
+        self.counts: Dict[str, int] = {'clouds': 0, 'fitted': 0, 'rejected': 0,
+                                       'nonfinite_points_dropped': 0,
+                                       'points_subsampled_away': 0}
+        self._rng = np.random.default_rng(0)
+        self.poly_pub = self.create_publisher(ImplicitPolynomial, 'implicit_polynomial', 10)
+        self.marker_pub = self.create_publisher(Marker, 'zero_set_marker', 10)
+        self.create_subscription(PointCloud2, 'cloud', self._on_cloud, qos_profile_sensor_data)
+        self.create_service(FitImplicitPolynomial, 'fit_implicit_polynomial', self._on_service)
+        self.get_logger().info(
+            f'ip_modeler: max degree {self.get_parameter("max_degree").value}, target RMS '
+            f'{self.get_parameter("target_rms").value} m')
+
+    # --- parameters -----------------------------------------------------------------------
+
+    def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
+        """Checks beyond the descriptors' ranges."""
+        for p in params:
+            if p.name == 'stabilization' and p.value not in STABILIZATION_MODES:
+                return SetParametersResult(
+                    successful=False, reason=f'stabilization must be one of '
+                    f'{", ".join(STABILIZATION_MODES)}, got {p.value!r}')
+            if p.name == 'viewpoint':
+                v = list(p.value) if p.value is not None else []
+                if len(v) != 3 or not np.all(np.isfinite(v)):
+                    return SetParametersResult(
+                        successful=False,
+                        reason=f'viewpoint must be 3 finite numbers [m], got {v}')
+        return SetParametersResult(successful=True)
+
+    # --- fitting --------------------------------------------------------------------------
+
+    def _status_counts(self) -> str:
+        return ', '.join(f'{k} {v}' for k, v in self.counts.items())
+
+    def fit_cloud(self, msg: PointCloud2, max_degree: int = 0, target_rms: float = 0.0
+                  ) -> Tuple[ImplicitPolynomial, Marker]:
+        """Fit one cloud; returns the messages to publish.
+
+        :raises ValueError: bad cloud or request, with the reason.
+        """
+        g = lambda name: self.get_parameter(name).value  # noqa: E731
+        points, normals, dropped = cloud_to_points(msg, g('use_cloud_normals'))
+        if dropped:
+            self.counts['nonfinite_points_dropped'] += dropped
+            self.get_logger().warning(
+                f'cloud: dropped {dropped} points with NaN/inf coordinates or normals '
+                f'({self.counts["nonfinite_points_dropped"]} so far)')
+        if len(points) == 0:
+            raise ValueError('cloud has no finite points')
+        if len(points) > g('max_points'):
+            keep = np.sort(self._rng.choice(len(points), g('max_points'), replace=False))
+            self.counts['points_subsampled_away'] += len(points) - len(keep)
+            points = points[keep]
+            normals = normals[keep] if normals is not None else None
+        if normals is None:
+            normals = estimate_normals(points, k=g('normal_neighbours'),
+                                       viewpoint=np.asarray(g('viewpoint'), dtype=float))
+        max_degree = int(max_degree) or int(g('max_degree'))
+        if not 1 <= max_degree <= MAX_SUPPORTED_DEGREE:
+            raise ValueError(f'max_degree must be in [1, {MAX_SUPPORTED_DEGREE}], got '
+                             f'{max_degree}')
+        target = float(target_rms) or float(g('target_rms'))
+        result = fit_implicit_polynomial(
+            points, normals, max_degree=max_degree, target_rms=target, offset=g('offset'),
+            stabilization=g('stabilization'), stability_tol=g('stability_tol'),
+            ridge=g('ridge'), min_improvement=g('min_improvement'), patience=g('patience'))
+        model = result.model
+        mesh = zero_set_mesh(model, *bounding_region(points, 0.1),
+                             resolution=g('mesh_resolution'))
+        d = distance_to_zero_set(model, points, mesh=mesh)
+        d = d[np.isfinite(d)] if np.any(np.isfinite(d)) else np.array([np.inf])
+        self.counts['fitted'] += 1
+        model.status = f'{model.status}; {self._status_counts()}'
+        poly = model_to_msg(model, msg.header, rms_distance=float(np.sqrt(np.mean(d ** 2))),
+                            max_distance=float(d.max()), point_count=len(points))
+        marker = mesh_to_marker(*mesh, msg.header)
+        return poly, marker
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        self.counts['clouds'] += 1
+        try:
+            poly, marker = self.fit_cloud(msg)
+        except ValueError as exc:
+            self.counts['rejected'] += 1
+            self.get_logger().warning(f'cloud {self.counts["clouds"]} rejected: {exc} '
+                                      f'({self.counts["rejected"]} rejected so far)')
+            return
+        self.poly_pub.publish(poly)
+        self.marker_pub.publish(marker)
+        self.get_logger().info(
+            f'fitted degree {poly.degree} to {poly.point_count} points: RMS distance '
+            f'{poly.rms_distance * 1e3:.2f} mm, max {poly.max_distance * 1e3:.2f} mm')
+
+    def _on_service(self, request: FitImplicitPolynomial.Request,
+                    response: FitImplicitPolynomial.Response
+                    ) -> FitImplicitPolynomial.Response:
+        try:
+            if request.target_rms < 0 or not np.isfinite(request.target_rms):
+                raise ValueError(f'target_rms must be finite and >= 0, got '
+                                 f'{request.target_rms}')
+            poly, marker = self.fit_cloud(request.cloud, request.max_degree,
+                                          request.target_rms)
+        except ValueError as exc:
+            self.counts['rejected'] += 1
+            self.get_logger().warning(f'fit_implicit_polynomial request rejected: {exc}')
+            response.success = False
+            response.message = str(exc)
+            return response
+        self.marker_pub.publish(marker)
+        response.model = poly
+        response.success = True
+        response.message = (f'degree {poly.degree}, RMS distance {poly.rms_distance:.6g} m, '
+                            f'{poly.point_count} points')
+        return response
+
+
+def main(args: Optional[List[str]] = None) -> None:
+    rclpy.init(args=args)
+    node = IpModelerNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
