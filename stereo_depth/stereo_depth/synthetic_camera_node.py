@@ -33,7 +33,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
-from std_msgs.msg import Header
+from std_msgs.msg import Empty, Header
 from stereo_msgs.msg import DisparityImage
 
 from stereo_manip_tools.conversions import (
@@ -68,6 +68,12 @@ _PARAMS = {
              {'floating_point_range': _float_range(0.01, 1000.0)}),
     'start_frame': (0, 'Scene frame index of the first published frame.',
                     {'integer_range': _int_range(0, 2 ** 31 - 1)}),
+    'trigger': (False, 'Software trigger: publish one frame per std_msgs/Empty received on '
+                       '`trigger` instead of at `rate` (read-only; set at start-up).',
+                {'read_only': True}),
+    'frame_step': (1, 'Scene frames advanced per published frame (1 = the scene at its own '
+                      'fps when rate matches it; > 1 plays it faster, like a time lapse).',
+                   {'integer_range': _int_range(1, 1000)}),
     'width': (640, 'Image width [px] (synthetic).', {'integer_range': _int_range(16, 4096)}),
     'height': (480, 'Image height [px] (synthetic).', {'integer_range': _int_range(16, 4096)}),
     'fx': (600.0, 'Focal length [px], both axes (synthetic and files sources; > 0).',
@@ -154,7 +160,11 @@ class SyntheticCameraNode(Node):
         self._pub_disp = self.create_publisher(DisparityImage, 'disparity_truth', 5)
         self._pub_occ = self.create_publisher(Image, 'occlusion_truth', 5)
         self._rebuild()  # raises ValueError/FileNotFoundError with a clear message
-        self._timer = self.create_timer(1.0 / float(self._values['rate']), self._tick)
+        self._timer = None
+        if self._values['trigger']:
+            self.create_subscription(Empty, 'trigger', lambda _msg: self._tick(), 10)
+        else:
+            self._timer = self.create_timer(1.0 / float(self._values['rate']), self._tick)
         self.get_logger().info(self._describe())
 
     # --- parameters -----------------------------------------------------------------------
@@ -237,26 +247,19 @@ class SyntheticCameraNode(Node):
             c = self._source.camera
             params = StereoCameraParameters(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy,
                                             baseline=c.baseline, width=c.width, height=c.height)
-            doffs = 0.0
         else:
             s = self._still
+            # Middlebury pairs: cx_right = cx_left + doffs
             params = StereoCameraParameters(fx=s.fx, fy=s.fx, cx=s.cx, cy=s.cy,
                                             baseline=s.baseline, width=s.left.shape[1],
-                                            height=s.left.shape[0])
-            doffs = s.doffs
+                                            height=s.left.shape[0], doffs=s.doffs)
         left, right = camera_info_from_parameters(params, header_l)
         right.header = header_r
-        if doffs:
-            # Middlebury pairs: cx_right = cx_left + doffs. Set explicitly (the shared helper's
-            # doffs sign convention is inconsistent, reported to the lead).
-            k, p = list(right.k), list(right.p)
-            k[2] = p[2] = params.cx + doffs
-            right.k, right.p = k, p
         return left, right
 
     def _tick(self) -> None:
         t0 = time.perf_counter()
-        if self._rate_dirty:
+        if self._rate_dirty and self._timer is not None:
             self._rate_dirty = False
             self._timer.cancel()
             self.destroy_timer(self._timer)
@@ -302,11 +305,11 @@ class SyntheticCameraNode(Node):
                 if occ is not None:
                     self._pub_occ.publish(numpy_to_image(occ.astype(np.uint8) * 255, 'mono8',
                                                          hl))
-        self._frame += 1
+        self._frame += int(self._values['frame_step'])
         self.frames_published += 1
         dt = time.perf_counter() - t0
         warm, self._warm = self._warm, True
-        if warm and dt > 1.0 / float(v['rate']):
+        if warm and self._timer is not None and dt > 1.0 / float(v['rate']):
             self.late_frames += 1
             self.get_logger().warning(
                 f'frame took {1e3 * dt:.1f} ms, longer than the {1e3 / float(v["rate"]):.1f} ms '

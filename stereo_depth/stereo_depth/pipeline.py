@@ -1,0 +1,310 @@
+"""The four-step stereo pipeline as named methods, and disparity -> depth -> 3-D points.
+
+A *method* turns a rectified pair into a left-view disparity map: (H, W) float32, pixels,
+``x_right = x_left - d``, NaN where there is no estimate. Methods and their parameters:
+
+================  ===========================================================================
+``sgm``           census (``census_window``) -> SGM (``p1``, ``p2``, ``paths`` 8) -> WTA with
+                  parabola subpixel -> refinement. The most accurate method here.
+``sgm4``          the same with 4 paths (faster).
+``block_matching``  the chapter's local method: ``cost`` ('ad', 'bt', 'census', 'zncc') ->
+                  box aggregation (``window``) -> WTA -> subpixel -> refinement.
+``bp``            hierarchical loopy BP (Felzenszwalb & Huttenlocher 2006) of Eq. 1 on a
+                  truncated census (or 'ad') data cost (``cost``, ``census_window``,
+                  ``data_weight``, ``data_truncation``, ``smoothness``, ``truncation``,
+                  ``iterations``, ``levels``) -> refinement.
+``opencv_bm``     OpenCV ``StereoBM`` (``block_size``), the hardware-like real-time path.
+``opencv_sgbm``   OpenCV ``StereoSGBM`` (``block_size``, ``mode`` 'sgbm' | '3way' | 'hh' |
+                  'hh4'; P1 = 8 bs^2, P2 = 32 bs^2 unless ``p1``/``p2`` are given).
+================  ===========================================================================
+
+Refinement parameters shared by the own methods: ``lr_check`` (bool), ``lr_max_diff`` (px),
+``speckle_size`` (px, 0 = off), ``speckle_diff`` (px), ``median`` (odd window, 1 = off),
+``fill`` (bool: fill missing pixels from the background, so the map is dense).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from stereo_depth.aggregation import box_aggregate, box_sum_u16
+from stereo_depth.matching_cost import (absolute_difference_cost, census_cost, check_pair,
+                                        to_gray, zncc_cost)
+from stereo_depth.optimization import (belief_propagation, census_block_matching, sgm_disparities,
+                                       winner_take_all_both)
+from stereo_depth.refinement import (fill_invalid, left_right_check, median_filter,
+                                     remove_speckles, subpixel_refine)
+
+__all__ = [
+    'StereoMethod',
+    'METHODS',
+    'available_methods',
+    'method_defaults',
+    'compute_disparity',
+    'disparity_to_depth',
+    'depth_to_points',
+    'disparity_to_points',
+]
+
+_REFINE_DEFAULTS = {
+    'lr_check': True,
+    'lr_max_diff': 1.0,
+    'speckle_size': 100,
+    'speckle_diff': 1.0,
+    'median': 3,
+    'fill': True,
+}
+
+
+@dataclass(frozen=True)
+class StereoMethod:
+    """A named disparity method: ``function(left, right, max_disparity, **params)``."""
+
+    name: str
+    function: Callable[..., np.ndarray]
+    defaults: dict = field(default_factory=dict)
+    description: str = ''
+
+
+def _refine(dl: np.ndarray, dr: np.ndarray | None, p: dict) -> np.ndarray:
+    d = dl
+    if p['lr_check'] and dr is not None:
+        d = left_right_check(d, dr, p['lr_max_diff'])
+    if p['speckle_size'] > 0:
+        d = remove_speckles(d, int(p['speckle_size']), float(p['speckle_diff']))
+    if p['median'] > 1:
+        d = median_filter(d, int(p['median']))
+    if p['fill']:
+        d = fill_invalid(d)
+    return d.astype(np.float32, copy=False)
+
+
+def _sgm(left, right, max_disparity, census_window=(9, 7), p1=10, p2=60, paths=8,
+         uniqueness=0.0, **refine):
+    cost = census_cost(left, right, max_disparity, tuple(census_window))
+    dl, dr = sgm_disparities(cost, int(p1), int(p2), int(paths), float(uniqueness))
+    return _refine(dl, dr, refine)
+
+
+def _sgm4(left, right, max_disparity, **params):
+    params['paths'] = 4
+    return _sgm(left, right, max_disparity, **params)
+
+
+def _cost_volume(kind, left, right, max_disparity, census_window=(9, 7), zncc_window=(7, 7),
+                 ad_truncation=255.0):
+    if kind == 'ad':
+        return absolute_difference_cost(left, right, max_disparity, ad_truncation)
+    if kind == 'bt':
+        return absolute_difference_cost(left, right, max_disparity, ad_truncation, True)
+    if kind == 'census':
+        return census_cost(left, right, max_disparity, tuple(census_window))
+    if kind == 'zncc':
+        return zncc_cost(left, right, max_disparity, tuple(zncc_window))
+    raise ValueError(f"unknown matching cost '{kind}' (use 'ad', 'bt', 'census' or 'zncc')")
+
+
+def _block_matching(left, right, max_disparity, cost='census', window=(7, 7),
+                    census_window=(5, 5), zncc_window=(7, 7), ad_truncation=255.0, **refine):
+    if cost == 'census' and tuple(window)[0] * tuple(window)[1] * 255 <= 65535:
+        dl, dr = census_block_matching(left, right, max_disparity, tuple(census_window),
+                                       tuple(window))
+        return _refine(dl, dr, refine)
+    c = _cost_volume(cost, left, right, max_disparity, census_window, zncc_window, ad_truncation)
+    if cost != 'zncc':
+        window = tuple(window)
+        if c.dtype == np.uint8 and window[0] * window[1] * 255 <= 65535:
+            c = box_sum_u16(c, window)
+        else:
+            c = box_aggregate(c, window, normalize=False)
+    dl, dr = winner_take_all_both(c)
+    return _refine(dl, dr, refine)
+
+
+def _bp(left, right, max_disparity, cost='census', census_window=(7, 7), data_weight=0.15,
+        data_truncation=30.0, smoothness=1.0, truncation=3.0, iterations=5, levels=5,
+        **refine):
+    # FH 2006 data term lambda_d * min(C, tau_d) on a census (or absolute difference) cost.
+    def data_cost(a, b):
+        if cost == 'census':
+            c = census_cost(a, b, max_disparity, tuple(census_window))
+        elif cost == 'ad':
+            c = absolute_difference_cost(a, b, max_disparity)
+        else:
+            raise ValueError(f"bp data cost must be 'census' or 'ad', got '{cost}'")
+        return np.minimum(c.astype(np.float32), np.float32(data_truncation)) * \
+            np.float32(data_weight)
+
+    data = data_cost(left, right)
+    labels = belief_propagation(data, smoothness, truncation, int(iterations), int(levels))
+    dl = subpixel_refine(labels, data)
+    dr = None
+    if refine['lr_check']:
+        # BP of the right view: mirror the pair (the flipped right image becomes the left one).
+        flip_l = np.ascontiguousarray(np.asarray(right)[:, ::-1])
+        flip_r = np.ascontiguousarray(np.asarray(left)[:, ::-1])
+        lab_r = belief_propagation(data_cost(flip_l, flip_r), smoothness, truncation,
+                                   int(iterations), int(levels))
+        dr = np.ascontiguousarray(lab_r[:, ::-1]).astype(np.float32)
+    return _refine(dl, dr, refine)
+
+
+def _to_cv_input(img):
+    arr = np.asarray(img)
+    if arr.dtype != np.uint8:
+        arr = np.clip(np.rint(arr), 0, 255).astype(np.uint8)
+    return arr
+
+
+def _opencv_bm(left, right, max_disparity, block_size=15, uniqueness_ratio=10,
+               speckle_window=100, speckle_range=2, texture_threshold=10):
+    import cv2
+
+    nd = int(np.ceil(max_disparity / 16.0) * 16)
+    bm = cv2.StereoBM_create(numDisparities=nd, blockSize=int(block_size))
+    bm.setUniquenessRatio(int(uniqueness_ratio))
+    bm.setSpeckleWindowSize(int(speckle_window))
+    bm.setSpeckleRange(int(speckle_range))
+    bm.setTextureThreshold(int(texture_threshold))
+    gl = _to_cv_input(to_gray(left))
+    gr = _to_cv_input(to_gray(right))
+    raw = bm.compute(gl, gr)
+    d = raw.astype(np.float32) / 16.0
+    d[(raw < 0) | (d >= max_disparity)] = np.nan
+    return d
+
+
+_SGBM_MODES = {'sgbm': 0, '3way': 2, 'hh': 1, 'hh4': 3}
+
+
+def _opencv_sgbm(left, right, max_disparity, block_size=5, mode='3way', p1=None, p2=None,
+                 uniqueness_ratio=0, speckle_window=0, speckle_range=0, disp12_max_diff=0,
+                 pre_filter_cap=0):
+    import cv2
+
+    if mode not in _SGBM_MODES:
+        raise ValueError(f"unknown SGBM mode '{mode}' (use {sorted(_SGBM_MODES)})")
+    bs = int(block_size)
+    nd = int(np.ceil(max_disparity / 16.0) * 16)
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=0, numDisparities=nd, blockSize=bs,
+        P1=int(8 * bs * bs if p1 is None else p1), P2=int(32 * bs * bs if p2 is None else p2),
+        disp12MaxDiff=int(disp12_max_diff), preFilterCap=int(pre_filter_cap),
+        uniquenessRatio=int(uniqueness_ratio), speckleWindowSize=int(speckle_window),
+        speckleRange=int(speckle_range), mode=_SGBM_MODES[mode])
+    raw = sgbm.compute(_to_cv_input(left), _to_cv_input(right))
+    d = raw.astype(np.float32) / 16.0
+    d[(raw < 0) | (d >= max_disparity)] = np.nan
+    return d
+
+
+METHODS: dict[str, StereoMethod] = {
+    'sgm': StereoMethod('sgm', _sgm, {'census_window': (9, 7), 'p1': 10, 'p2': 60, 'paths': 8,
+                                      'uniqueness': 0.0, **_REFINE_DEFAULTS},
+                        'census + semi-global matching (8 paths) + refinement'),
+    'sgm4': StereoMethod('sgm4', _sgm4, {'census_window': (9, 7), 'p1': 10, 'p2': 60,
+                                         'uniqueness': 0.0, **_REFINE_DEFAULTS},
+                         'census + semi-global matching (4 paths) + refinement'),
+    'block_matching': StereoMethod(
+        'block_matching', _block_matching,
+        {'cost': 'census', 'window': (7, 7), 'census_window': (5, 5), 'zncc_window': (7, 7),
+         'ad_truncation': 255.0, **_REFINE_DEFAULTS},
+        'local method: matching cost + box aggregation + winner-take-all + refinement'),
+    'bp': StereoMethod(
+        'bp', _bp,
+        {'cost': 'census', 'census_window': (7, 7), 'data_weight': 0.15,
+         'data_truncation': 30.0, 'smoothness': 1.0, 'truncation': 3.0, 'iterations': 5,
+         'levels': 5, **_REFINE_DEFAULTS},
+        'hierarchical loopy belief propagation of Eq. 1 (Felzenszwalb & Huttenlocher 2006)'),
+    'opencv_bm': StereoMethod(
+        'opencv_bm', _opencv_bm,
+        {'block_size': 15, 'uniqueness_ratio': 10, 'speckle_window': 100, 'speckle_range': 2,
+         'texture_threshold': 10},
+        'OpenCV StereoBM (real time, sparse)'),
+    'opencv_sgbm': StereoMethod(
+        'opencv_sgbm', _opencv_sgbm,
+        {'block_size': 5, 'mode': '3way', 'p1': None, 'p2': None, 'uniqueness_ratio': 0,
+         'speckle_window': 0, 'speckle_range': 0, 'disp12_max_diff': 0, 'pre_filter_cap': 0},
+        'OpenCV StereoSGBM'),
+}
+
+
+def available_methods() -> list[str]:
+    """Names accepted by :func:`compute_disparity`."""
+    return sorted(METHODS)
+
+
+def method_defaults(method: str) -> dict:
+    """A copy of the default parameters of ``method``."""
+    if method not in METHODS:
+        raise ValueError(f"unknown stereo method '{method}'; available: {available_methods()}")
+    return dict(METHODS[method].defaults)
+
+
+def compute_disparity(left: np.ndarray, right: np.ndarray, method: str = 'sgm',
+                      max_disparity: int = 64, **params: Any) -> np.ndarray:
+    """Left-view disparity of a rectified pair with a named method.
+
+    :param left: left rectified image, (H, W) grey or (H, W, 3) RGB.
+    :param right: right rectified image, same shape.
+    :param method: one of :func:`available_methods`.
+    :param max_disparity: number of disparity candidates D (0 .. D-1 pixels).
+    :param params: method parameters overriding :func:`method_defaults`; unknown names raise.
+    :return: (H, W) float32 disparities in pixels, NaN where unknown.
+    """
+    p = method_defaults(method)
+    unknown = set(params) - set(p)
+    if unknown:
+        raise ValueError(f"unknown parameter(s) {sorted(unknown)} for method '{method}'; "
+                         f'known: {sorted(p)}')
+    p.update(params)
+    check_pair(left, right, max_disparity)
+    return METHODS[method].function(np.asarray(left), np.asarray(right), int(max_disparity),
+                                    **p)
+
+
+def disparity_to_depth(disparity: np.ndarray, focal_length: float, baseline: float,
+                       doffs: float = 0.0) -> np.ndarray:
+    """Depth along the optical axis ``Z = f B / (d + doffs)`` (metres, NaN where unknown).
+
+    :param disparity: (H, W) disparities in pixels.
+    :param focal_length: horizontal focal length ``fx`` in pixels (rectified).
+    :param baseline: distance between the optical centres in metres (> 0).
+    :param doffs: ``cx_right - cx_left`` in pixels (0 for the usual rectification).
+    :return: (H, W) float32 depth; NaN where ``d + doffs <= 0`` or the disparity is NaN.
+    """
+    if not np.isfinite(baseline) or baseline <= 0:
+        raise ValueError(f'baseline must be a positive number of metres, got {baseline}')
+    if not np.isfinite(focal_length) or focal_length <= 0:
+        raise ValueError(f'focal length must be a positive number of pixels, got {focal_length}')
+    d = np.asarray(disparity, dtype=np.float32) + np.float32(doffs)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        z = np.float32(focal_length * baseline) / d
+    z[~(d > 0)] = np.nan
+    return z
+
+
+def depth_to_points(depth: np.ndarray, fx: float, fy: float, cx: float,
+                    cy: float) -> np.ndarray:
+    """Back-project a depth image into the optical frame (z forward, x right, y down).
+
+    :param depth: (H, W) depth in metres, NaN where unknown.
+    :param fx: focal lengths and principal point of the (rectified) camera, pixels.
+    :return: (H, W, 3) float32 points in metres, NaN where the depth is unknown.
+    """
+    z = np.asarray(depth, dtype=np.float32)
+    h, w = z.shape
+    u = np.arange(w, dtype=np.float32)[None, :]
+    v = np.arange(h, dtype=np.float32)[:, None]
+    x = (u - np.float32(cx)) * z / np.float32(fx)
+    y = (v - np.float32(cy)) * z / np.float32(fy)
+    return np.stack([x, y, z], axis=-1)
+
+
+def disparity_to_points(disparity: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                        baseline: float, doffs: float = 0.0) -> np.ndarray:
+    """Disparity -> (H, W, 3) points in the left optical frame (metres, NaN where unknown)."""
+    return depth_to_points(disparity_to_depth(disparity, fx, baseline, doffs), fx, fy, cx, cy)

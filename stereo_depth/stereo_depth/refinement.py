@@ -1,0 +1,233 @@
+"""Step 4 of the four-step stereo pipeline (chapter Sec. 2.1): disparity refinement.
+
+Disparity maps are (H, W) float32 arrays in pixels of the left image (``x_right = x_left - d``);
+NaN marks a pixel without an estimate. Every function returns a new array.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = [
+    'subpixel_refine',
+    'right_disparity_from_cost',
+    'left_right_check',
+    'remove_speckles',
+    'median_filter',
+    'fill_invalid',
+]
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _parabola(disp, cost):
+    h, w, nd = cost.shape
+    out = np.empty((h, w), np.float32)
+    for y in numba.prange(h):
+        for x in range(w):
+            d = disp[y, x]
+            off = 0.0
+            if 0 < d < nd - 1:
+                cm = np.float64(cost[y, x, d - 1])
+                c0 = np.float64(cost[y, x, d])
+                cp = np.float64(cost[y, x, d + 1])
+                den = cm - 2.0 * c0 + cp
+                if den > 0.0:
+                    off = 0.5 * (cm - cp) / den
+                    off = min(max(off, -0.5), 0.5)
+            out[y, x] = d + off
+    return out
+
+
+def subpixel_refine(disparity: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """Parabola through the costs at ``d-1, d, d+1``; its vertex is the subpixel disparity.
+
+    :param disparity: (H, W) integer disparities (e.g. from winner-take-all).
+    :param cost: the (H, W, D) cost volume that produced them.
+    :return: (H, W) float32 disparities, offsets clipped to +-0.5 px (end labels unchanged).
+    """
+    disparity = np.asarray(disparity)
+    cost = np.asarray(cost)
+    if cost.ndim != 3 or disparity.shape != cost.shape[:2]:
+        raise ValueError(f'disparity {disparity.shape} does not match cost volume {cost.shape}')
+    return _parabola(disparity.astype(np.int64), cost)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _right_wta(cost):
+    h, w, nd = cost.shape
+    out = np.full((h, w), np.nan, np.float32)
+    for y in numba.prange(h):
+        for xr in range(w):
+            best = np.inf
+            bd = -1
+            for d in range(min(nd, w - xr)):
+                c = cost[y, xr + d, d]
+                if c < best:
+                    best = c
+                    bd = d
+            if bd >= 0:
+                out[y, xr] = bd
+    return out
+
+
+def right_disparity_from_cost(cost: np.ndarray) -> np.ndarray:
+    """Winner-take-all disparity of the right view from the left view's cost volume.
+
+    The right pixel ``xr`` matched with disparity ``d`` is the left pixel ``xr + d``, so
+    ``d_R(xr) = argmin_d C(y, xr + d, d)``.
+
+    :param cost: (H, W, D) cost volume of the left view.
+    :return: (H, W) float32 right-view disparities (pixels).
+    """
+    cost = np.asarray(cost)
+    if cost.ndim != 3:
+        raise ValueError(f'cost volume must be (H, W, D), got shape {cost.shape}')
+    return _right_wta(cost)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _lr_check(dl, dr, max_diff):
+    h, w = dl.shape
+    out = dl.copy()
+    for y in numba.prange(h):
+        for x in range(w):
+            d = dl[y, x]
+            if np.isnan(d):
+                continue
+            xr = int(np.floor(x - d + 0.5))
+            if xr < 0 or xr >= w or np.isnan(dr[y, xr]) or abs(dr[y, xr] - d) > max_diff:
+                out[y, x] = np.nan
+    return out
+
+
+def left_right_check(disp_left: np.ndarray, disp_right: np.ndarray,
+                     max_diff: float = 1.0) -> np.ndarray:
+    """Left-right consistency: keep ``d_L(x)`` only if ``|d_R(x - d_L(x)) - d_L(x)| <= max_diff``.
+
+    Removes occluded pixels (visible in the left image only) and most mismatches.
+
+    :param disp_left: (H, W) left-view disparities (pixels, NaN = none).
+    :param disp_right: (H, W) right-view disparities (pixels, NaN = none).
+    :param max_diff: tolerance in pixels.
+    :return: (H, W) float32 left disparities with NaN where the check fails.
+    """
+    dl = np.asarray(disp_left, dtype=np.float32)
+    dr = np.asarray(disp_right, dtype=np.float32)
+    if dl.shape != dr.shape or dl.ndim != 2:
+        raise ValueError(f'disparity maps must be equal (H, W) arrays: {dl.shape} vs {dr.shape}')
+    if max_diff < 0:
+        raise ValueError(f'max_diff must be >= 0, got {max_diff}')
+    return _lr_check(dl, dr, np.float32(max_diff))
+
+
+def remove_speckles(disparity: np.ndarray, max_size: int = 100,
+                    max_diff: float = 1.0) -> np.ndarray:
+    """Invalidate small connected blobs (speckles), as OpenCV's ``filterSpeckles``.
+
+    Neighbouring pixels belong to one blob when their disparities differ by at most
+    ``max_diff``; blobs of at most ``max_size`` pixels become NaN.
+
+    :param disparity: (H, W) disparities (pixels, NaN = none).
+    :param max_size: largest blob (pixels) that is removed; 0 disables the filter.
+    :param max_diff: neighbour tolerance in pixels.
+    """
+    import cv2
+
+    d = np.asarray(disparity, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
+    if max_size <= 0:
+        return d.copy()
+    scale = 16.0
+    invalid = np.isnan(d)
+    fixed = np.where(invalid, -1.0, np.round(d * scale)).astype(np.int16)
+    cv2.filterSpeckles(fixed, -1, int(max_size), int(round(max_diff * scale)))
+    out = d.copy()
+    out[fixed == -1] = np.nan
+    return out
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _nan_median(d, r):
+    h, w = d.shape
+    out = np.empty_like(d)
+    for y in numba.prange(h):
+        buf = np.empty((2 * r + 1) * (2 * r + 1), np.float32)
+        for x in range(w):
+            if np.isnan(d[y, x]):
+                out[y, x] = np.nan
+                continue
+            n = 0
+            for yy in range(max(0, y - r), min(h, y + r + 1)):
+                for xx in range(max(0, x - r), min(w, x + r + 1)):
+                    v = d[yy, xx]
+                    if not np.isnan(v):
+                        # insertion into the sorted prefix buf[:n]
+                        k = n
+                        while k > 0 and buf[k - 1] > v:
+                            buf[k] = buf[k - 1]
+                            k -= 1
+                        buf[k] = v
+                        n += 1
+            out[y, x] = buf[n // 2] if n % 2 == 1 else 0.5 * (buf[n // 2 - 1] + buf[n // 2])
+    return out
+
+
+def median_filter(disparity: np.ndarray, size: int = 3) -> np.ndarray:
+    """Median over the valid pixels of a ``size x size`` window; NaN pixels stay NaN.
+
+    :param disparity: (H, W) disparities (pixels, NaN = none).
+    :param size: odd window size >= 1.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f'median size must be odd and >= 1, got {size}')
+    if size == 1:
+        return d.copy()
+    return _nan_median(d, size // 2)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _fill_rows(d):
+    h, w = d.shape
+    out = d.copy()
+    for y in numba.prange(h):
+        x = 0
+        while x < w:
+            if not np.isnan(d[y, x]):
+                x += 1
+                continue
+            x1 = x
+            while x1 < w and np.isnan(d[y, x1]):
+                x1 += 1
+            left = d[y, x - 1] if x > 0 else np.nan
+            right = d[y, x1] if x1 < w else np.nan
+            if np.isnan(left):
+                v = right
+            elif np.isnan(right):
+                v = left
+            else:
+                v = min(left, right)
+            for k in range(x, x1):
+                out[y, k] = v
+            x = x1
+    return out
+
+
+def fill_invalid(disparity: np.ndarray) -> np.ndarray:
+    """Fill each horizontal run of missing pixels with the background disparity.
+
+    An occluded or rejected run in a row lies next to a farther surface, so it takes the
+    smaller of the two valid disparities that bound it (the only one at the image border).
+    Rows without any estimate stay NaN.
+
+    :param disparity: (H, W) disparities (pixels, NaN = none).
+    :return: (H, W) float32 dense disparities.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
+    return _fill_rows(d)

@@ -1,0 +1,429 @@
+"""``stereo_depth_node``: rectified stereo pairs -> disparity, depth and a point cloud.
+
+Subscribes (sensor-data QoS; topic names as ``stereo_image_proc``):
+``left/image_rect``, ``right/image_rect`` (mono8, 8UC1, mono16, 16UC1, rgb8, bgr8, rgba8, bgra8),
+``left/camera_info``, ``right/camera_info``.
+
+Publishes:
+``disparity`` (``stereo_msgs/DisparityImage``, 32FC1 pixels ``d = x_l - x_r - (cx_l - cx_r)``,
+missing pixels ``min_disparity - 1``, i.e. -1 for the usual rectification), ``depth``
+(``sensor_msgs/Image`` 32FC1, metres along the optical axis, NaN where unknown), ``points2``
+(``sensor_msgs/PointCloud2`` x, y, z [m] and rgb for colour input, in the left optical frame of
+the image header).
+
+Pairing: left and right images are paired by header stamp, exactly by default or within
+``sync_tolerance`` seconds; each pair uses the camera infos with the same stamp, else the latest
+received ones. Processing runs in a worker thread on the newest pair only: a pair that is
+superseded before the worker takes it is dropped and counted (``dropped_stale``), never
+queued. Bad input (size mismatch, unsupported encoding, missing or inconsistent camera info,
+zero baseline) is rejected with a warning naming the problem and counted per reason. The
+processing rate and the counters are logged every ``stats_period`` seconds.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+import threading
+import time
+from typing import Any, Dict, Optional, Tuple
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, RegionOfInterest
+from stereo_msgs.msg import DisparityImage
+
+from stereo_depth.pipeline import (available_methods, compute_disparity, depth_to_points,
+                                   disparity_to_depth, method_defaults)
+from stereo_manip_tools.conversions import (image_to_numpy, numpy_to_image, stamp_to_ns,
+                                            xyz_to_pointcloud2)
+from stereo_manip_tools.sync import StampSynchronizer
+
+__all__ = ['StereoDepthNode', 'prepare_pair', 'stereo_geometry', 'main', 'SUPPORTED_ENCODINGS']
+
+SUPPORTED_ENCODINGS = ('mono8', '8UC1', 'mono16', '16UC1', 'rgb8', 'bgr8', 'rgba8', 'bgra8')
+
+# Parameters forwarded to the method when it has a parameter of that name.
+_METHOD_PARAMS = ('p1', 'p2', 'block_size', 'lr_check', 'lr_max_diff', 'speckle_size',
+                  'speckle_diff', 'median', 'fill', 'uniqueness')
+
+
+class InputError(ValueError):
+    """A frame that cannot be processed; ``reason`` is the counter key."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+def _to_matching_image(img: np.ndarray, encoding: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """(image for matching: uint8 grey or RGB, RGB uint8 colours for the cloud or None)."""
+    if encoding in ('mono16', '16UC1'):
+        img = (img >> 8).astype(np.uint8)
+    if encoding in ('mono8', '8UC1', 'mono16', '16UC1'):
+        return img, None
+    rgb = img[:, :, :3]
+    if encoding in ('bgr8', 'bgra8'):
+        rgb = rgb[:, :, ::-1]
+    rgb = np.ascontiguousarray(rgb)
+    return rgb, rgb
+
+
+def prepare_pair(left: Image, right: Image) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+    """Decode and check a left/right image pair.
+
+    :return: (left, right) arrays for matching and the left RGB colours (None for mono).
+    :raises InputError: unsupported/mismatched encodings, or images of different sizes.
+    """
+    for side, msg in (('left', left), ('right', right)):
+        if msg.encoding not in SUPPORTED_ENCODINGS:
+            raise InputError('unsupported_encoding',
+                             f'{side} image has unsupported encoding {msg.encoding!r}; '
+                             f'supported: {", ".join(SUPPORTED_ENCODINGS)}')
+    if left.encoding != right.encoding:
+        raise InputError('encoding_mismatch', f'left image is {left.encoding} but right image '
+                                              f'is {right.encoding}')
+    if (left.width, left.height) != (right.width, right.height):
+        raise InputError('size_mismatch', f'left image is {left.width}x{left.height} but right '
+                                          f'image is {right.width}x{right.height}')
+    if left.width == 0 or left.height == 0:
+        raise InputError('size_mismatch', 'empty image (width or height 0)')
+    try:
+        limg = image_to_numpy(left)
+        rimg = image_to_numpy(right)
+    except ValueError as exc:
+        raise InputError('bad_image', f'cannot decode image: {exc}') from exc
+    lm, colours = _to_matching_image(limg, left.encoding)
+    rm, _ = _to_matching_image(rimg, right.encoding)
+    return lm, rm, colours
+
+
+def stereo_geometry(left_info: Optional[CameraInfo], right_info: Optional[CameraInfo],
+                    width: int, height: int) -> Dict[str, float]:
+    """fx, fy, cx, cy, baseline [m] and doffs = cx_r - cx_l [px] from the rectified infos.
+
+    ROS convention: right ``P[0, 3] = -fx * B``. Depth ``Z = fx B / (d + doffs)``.
+
+    :raises InputError: missing info, zero focal length, baseline not positive, or an info
+        whose size differs from the images.
+    """
+    if left_info is None or right_info is None:
+        missing = [n for n, i in (('left/camera_info', left_info),
+                                  ('right/camera_info', right_info)) if i is None]
+        raise InputError('missing_camera_info',
+                         f'no CameraInfo received on {" and ".join(missing)}')
+    for side, info in (('left', left_info), ('right', right_info)):
+        if (info.width, info.height) != (width, height):
+            raise InputError('size_mismatch',
+                             f'{side} CameraInfo is {info.width}x{info.height} but the images '
+                             f'are {width}x{height}')
+    pl = np.asarray(left_info.p, dtype=float).reshape(3, 4)
+    pr = np.asarray(right_info.p, dtype=float).reshape(3, 4)
+    fx, fy = pl[0, 0], pl[1, 1]
+    if not (fx > 0 and fy > 0 and pr[0, 0] > 0):
+        raise InputError('bad_camera_info', f'CameraInfo projection P has focal lengths '
+                                            f'fx={fx}, fy={fy}, right fx={pr[0, 0]} (P not set?)')
+    baseline = -pr[0, 3] / pr[0, 0]
+    if not np.isfinite(baseline) or baseline <= 0:
+        raise InputError('zero_baseline',
+                         f'baseline from right CameraInfo P[0,3]={pr[0, 3]} is {baseline} m; '
+                         'must be > 0 (ROS convention P[0,3] = -fx * baseline)')
+    return {'fx': float(fx), 'fy': float(fy), 'cx': float(pl[0, 2]), 'cy': float(pl[1, 2]),
+            'baseline': float(baseline), 'doffs': float(pr[0, 2] - pl[0, 2])}
+
+
+def _descriptor(description: str, ptype: int, *, int_range=None, float_range=None,
+                read_only: bool = False, additional: str = '') -> ParameterDescriptor:
+    d = ParameterDescriptor(description=description, type=ptype, read_only=read_only,
+                            additional_constraints=additional)
+    if int_range is not None:
+        d.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=1)]
+    if float_range is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=float(float_range[0]),
+                                                     to_value=float(float_range[1]), step=0.0)]
+    return d
+
+
+_PARAMS = {
+    # name: (default, descriptor)
+    'method': ('block_matching', _descriptor(
+        'disparity method (stereo_depth.pipeline): ' + ', '.join(available_methods()),
+        ParameterType.PARAMETER_STRING, additional='one of ' + ', '.join(available_methods()))),
+    'max_disparity': (64, _descriptor(
+        'number of disparity candidates D (0 .. D-1 pixels)', ParameterType.PARAMETER_INTEGER,
+        int_range=(2, 512))),
+    'sync_tolerance': (0.0, _descriptor(
+        'largest stamp difference [s] between paired left/right images; 0 = exact stamps',
+        ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 1.0))),
+    'sync_queue_size': (10, _descriptor(
+        'images kept per side while waiting for the partner', ParameterType.PARAMETER_INTEGER,
+        int_range=(1, 100), read_only=True)),
+    'publish_points': (True, _descriptor('publish the point cloud on points2',
+                                         ParameterType.PARAMETER_BOOL)),
+    'stats_period': (5.0, _descriptor(
+        'period [s] of the processing-rate log line', ParameterType.PARAMETER_DOUBLE,
+        float_range=(0.5, 3600.0), read_only=True)),
+    'p1': (10, _descriptor('SGM penalty of a 1-pixel disparity change (sgm, sgm4)',
+                           ParameterType.PARAMETER_INTEGER, int_range=(0, 1000))),
+    'p2': (60, _descriptor('SGM penalty of larger disparity changes, >= p1 (sgm, sgm4)',
+                           ParameterType.PARAMETER_INTEGER, int_range=(0, 4000))),
+    'block_size': (5, _descriptor('OpenCV block size (opencv_bm needs odd >= 5, '
+                                  'opencv_sgbm odd >= 1)',
+                                  ParameterType.PARAMETER_INTEGER, int_range=(1, 51))),
+    'lr_check': (True, _descriptor('left-right consistency check (own methods)',
+                                   ParameterType.PARAMETER_BOOL)),
+    'lr_max_diff': (1.0, _descriptor('left-right check tolerance [px]',
+                                     ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 10.0))),
+    'speckle_size': (100, _descriptor('largest blob [px] removed as a speckle; 0 = off',
+                                      ParameterType.PARAMETER_INTEGER, int_range=(0, 10000))),
+    'speckle_diff': (1.0, _descriptor('disparity step [px] separating speckle blobs',
+                                      ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 16.0))),
+    'median': (3, _descriptor('median filter window (odd; 1 = off)',
+                              ParameterType.PARAMETER_INTEGER, int_range=(1, 7))),
+    'fill': (True, _descriptor('fill missing pixels from the background (dense output)',
+                               ParameterType.PARAMETER_BOOL)),
+    'uniqueness': (0.0, _descriptor('SGM uniqueness margin (0 = off)',
+                                    ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 1.0))),
+}
+
+
+def validate_parameter(name: str, value: Any, current: Dict[str, Any]) -> Optional[str]:
+    """Reason the new value is invalid, or None (cross-parameter rules included)."""
+    if name == 'method' and value not in available_methods():
+        return f"method must be one of {available_methods()}, got '{value}'"
+    if name == 'median' and value % 2 == 0:
+        return f'median window must be odd, got {value}'
+    if name == 'block_size' and value % 2 == 0:
+        return f'block_size must be odd, got {value}'
+    if name == 'p1' and value > current.get('p2', value):
+        return f'p1={value} must not exceed p2={current.get("p2")}'
+    if name == 'p2' and value < current.get('p1', value):
+        return f'p2={value} must not be below p1={current.get("p1")}'
+    return None
+
+
+class StereoDepthNode(Node):
+    """Stereo pairs in, disparity/depth/points out (see the module docstring)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('stereo_depth_node', **kwargs)
+        self._params: Dict[str, Any] = {}
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        for name, (default, desc) in _PARAMS.items():
+            self._params[name] = self.declare_parameter(name, default, desc).value
+
+        self._sync = StampSynchronizer(
+            ('left', 'right'), tolerance_ns=int(round(self._params['sync_tolerance'] * 1e9)),
+            queue_size=int(self._params['sync_queue_size']))
+        self._infos: Dict[str, 'OrderedDict[int, CameraInfo]'] = {'left': OrderedDict(),
+                                                                  'right': OrderedDict()}
+        self._pending: Optional[Dict[str, Image]] = None
+        self.counters: Dict[str, int] = {'received_pairs': 0, 'processed': 0,
+                                         'dropped_stale': 0, 'unpaired_images': 0, 'failed': 0}
+        self.rejected: Dict[str, int] = {}
+        self._last_warning: Dict[str, float] = {}
+        self._proc_times: list = []
+        self._running = True
+
+        self.pub_disparity = self.create_publisher(DisparityImage, 'disparity', 5)
+        self.pub_depth = self.create_publisher(Image, 'depth', 5)
+        self.pub_points = self.create_publisher(PointCloud2, 'points2', 5)
+        qos = qos_profile_sensor_data
+        self.create_subscription(Image, 'left/image_rect',
+                                 lambda m: self._on_image('left', m), qos)
+        self.create_subscription(Image, 'right/image_rect',
+                                 lambda m: self._on_image('right', m), qos)
+        self.create_subscription(CameraInfo, 'left/camera_info',
+                                 lambda m: self._on_info('left', m), qos)
+        self.create_subscription(CameraInfo, 'right/camera_info',
+                                 lambda m: self._on_info('right', m), qos)
+        self._stats_t0 = time.monotonic()
+        self._stats_processed = 0
+        self.create_timer(float(self._params['stats_period']), self._log_stats)
+        self._worker = threading.Thread(target=self._work, name='stereo_depth_worker',
+                                        daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"stereo_depth_node ready: method {self._params['method']}, "
+            f"{self._params['max_disparity']} disparities, sync "
+            + ('exact' if self._params['sync_tolerance'] == 0
+               else f"within {self._params['sync_tolerance']} s"))
+
+    # --- parameters --------------------------------------------------------------------------
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        current = dict(self._params)
+        for p in params:
+            if p.name in _PARAMS:
+                reason = validate_parameter(p.name, p.value, current)
+                if reason is not None:
+                    return SetParametersResult(successful=False, reason=reason)
+                current[p.name] = p.value
+        with self._lock:
+            self._params.update({p.name: p.value for p in params if p.name in _PARAMS})
+            for p in params:
+                if p.name == 'sync_tolerance' and hasattr(self, '_sync'):
+                    self._sync.tolerance_ns = int(round(p.value * 1e9))
+        return SetParametersResult(successful=True)
+
+    # --- input ---------------------------------------------------------------------------------
+
+    def _reject(self, reason: str, message: str) -> None:
+        # Every rejection is counted; the warning is repeated at most once per second and
+        # reason, so a misconfigured 30 Hz camera does not flood the log.
+        now = time.monotonic()
+        with self._lock:
+            self.rejected[reason] = self.rejected.get(reason, 0) + 1
+            n = self.rejected[reason]
+            last = self._last_warning.get(reason)
+            if last is not None and now - last < 1.0:
+                return
+            self._last_warning[reason] = now
+        self.get_logger().warning(f'frame rejected ({reason}, {n} so far): {message}')
+
+    def _on_info(self, side: str, msg: CameraInfo) -> None:
+        with self._lock:
+            q = self._infos[side]
+            q[stamp_to_ns(msg.header.stamp)] = msg
+            while len(q) > 50:
+                q.popitem(last=False)
+
+    def _on_image(self, side: str, msg: Image) -> None:
+        with self._lock:
+            before = sum(self._sync.dropped.values())
+            pair = self._sync.add(side, stamp_to_ns(msg.header.stamp), msg)
+            unpaired = sum(self._sync.dropped.values()) - before
+            if unpaired:
+                self.counters['unpaired_images'] += unpaired
+            if pair is None:
+                return
+            self.counters['received_pairs'] += 1
+            if self._pending is not None:
+                self.counters['dropped_stale'] += 1       # superseded before processing
+            self._pending = pair
+            self._wake.notify()
+
+    def _infos_for(self, stamp_ns: int) -> Tuple[Optional[CameraInfo], Optional[CameraInfo]]:
+        tol = int(round(self._params['sync_tolerance'] * 1e9))
+        out = []
+        for side in ('left', 'right'):
+            q = self._infos[side]
+            if not q:
+                out.append(None)
+                continue
+            best = min(q, key=lambda s: abs(s - stamp_ns))
+            out.append(q[best] if abs(best - stamp_ns) <= tol else q[next(reversed(q))])
+        return out[0], out[1]
+
+    # --- processing ----------------------------------------------------------------------------
+
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                while self._pending is None and self._running:
+                    self._wake.wait(timeout=0.5)
+                if not self._running:
+                    return
+                pair = self._pending
+                self._pending = None
+                params = dict(self._params)
+                infos = self._infos_for(stamp_to_ns(pair['left'].header.stamp))
+            try:
+                self._process(pair['left'], pair['right'], infos, params)
+            except InputError as exc:
+                self._reject(exc.reason, str(exc))
+            except ValueError as exc:
+                self._reject('invalid', str(exc))
+            except Exception as exc:  # noqa: BLE001 - keep the node alive, count and report
+                with self._lock:
+                    self.counters['failed'] += 1
+                self.get_logger().error(f'processing failed: {type(exc).__name__}: {exc}')
+
+    def _process(self, left: Image, right: Image, infos, params: Dict[str, Any]) -> None:
+        t0 = time.perf_counter()
+        limg, rimg, colours = prepare_pair(left, right)
+        h, w = limg.shape[:2]
+        geo = stereo_geometry(infos[0], infos[1], w, h)
+        method = params['method']
+        ndisp = int(params['max_disparity'])
+        if ndisp > w:
+            raise InputError('invalid', f'max_disparity {ndisp} exceeds the image width {w}')
+        defaults = method_defaults(method)
+        mp = {k: params[k] for k in _METHOD_PARAMS if k in defaults}
+        if method.startswith('opencv'):
+            # OpenCV SGBM keeps its own P1 = 8 bs^2, P2 = 32 bs^2 (node p1/p2 are for SGM)
+            mp.pop('p1', None)
+            mp.pop('p2', None)
+        disp = compute_disparity(limg, rimg, method, ndisp, **mp)
+        # Disparity relative to the principal points, as DisparityImage defines it.
+        disp_adj = disp + np.float32(geo['doffs'])
+        depth = disparity_to_depth(disp, geo['fx'], geo['baseline'], geo['doffs'])
+        header = left.header
+
+        dmsg = DisparityImage()
+        dmsg.header = header
+        invalid = np.float32(geo['doffs'] - 1.0)            # below min_disparity
+        out = np.where(np.isfinite(disp_adj), disp_adj, invalid).astype(np.float32)
+        dmsg.image = numpy_to_image(out, '32FC1', header)
+        dmsg.f = geo['fx']
+        dmsg.t = geo['baseline']
+        dmsg.valid_window = RegionOfInterest(x_offset=0, y_offset=0, height=h, width=w)
+        dmsg.min_disparity = float(geo['doffs'])
+        dmsg.max_disparity = float(ndisp - 1 + geo['doffs'])
+        dmsg.delta_d = 1.0 / 16.0
+        with self._lock:
+            # counted before publishing, so a subscriber never sees more outputs than counts
+            self.counters['processed'] += 1
+            self._proc_times.append(time.perf_counter() - t0)
+        self.pub_disparity.publish(dmsg)
+        self.pub_depth.publish(numpy_to_image(depth, '32FC1', header))
+        if params['publish_points']:
+            pts = depth_to_points(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'])
+            ok = np.isfinite(depth)
+            rgb = colours[ok] if colours is not None else None
+            self.pub_points.publish(xyz_to_pointcloud2(pts[ok], header, rgb=rgb))
+
+    def _log_stats(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            n = self.counters['processed'] - self._stats_processed
+            self._stats_processed = self.counters['processed']
+            times = self._proc_times
+            self._proc_times = []
+            counters = dict(self.counters)
+            rejected = dict(self.rejected)
+        period = now - self._stats_t0
+        self._stats_t0 = now
+        ms = 1e3 * float(np.mean(times)) if times else float('nan')
+        self.get_logger().info(
+            f'processed {n} frames in {period:.1f} s ({n / period:.2f} Hz, {ms:.1f} ms/frame); '
+            f"total processed {counters['processed']}, pairs {counters['received_pairs']}, "
+            f"dropped stale {counters['dropped_stale']}, unpaired images "
+            f"{counters['unpaired_images']}, failed {counters['failed']}, "
+            f'rejected {sum(rejected.values())} {rejected}')
+
+    def destroy_node(self) -> None:
+        with self._lock:
+            self._running = False
+            self._wake.notify_all()
+        if self._worker.is_alive():
+            self._worker.join(timeout=5.0)
+        super().destroy_node()
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = StereoDepthNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
