@@ -51,7 +51,8 @@ fi
 
 export AMENT_PREFIX_PATH=$VENV CMAKE_PREFIX_PATH=$VENV
 STAMP=$ROOT/install/.bootstrap_build_stamp
-PKG_DIRS=(msgs stereo_manip_tools stereo_depth object_localizer contact_correction joint_estimator ip_modeler)
+PKG_DIRS=(msgs stereo_manip_tools stereo_depth object_localizer contact_correction joint_estimator ip_modeler
+          stereo_manip_bringup)
 changed=1
 if [ -f "$STAMP" ]; then
   changed=$(cd "$ROOT" && find "${PKG_DIRS[@]}" -newer "$STAMP" -type f \

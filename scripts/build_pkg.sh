@@ -8,6 +8,6 @@ ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 export AMENT_PREFIX_PATH=$ROOT/.venv CMAKE_PREFIX_PATH=$ROOT/.venv
 cd "$ROOT"
 colcon --log-base "$ROOT/log" build --base-paths msgs stereo_manip_tools stereo_depth \
-  object_localizer contact_correction joint_estimator ip_modeler \
+  object_localizer contact_correction joint_estimator ip_modeler stereo_manip_bringup \
   --build-base build --install-base install --symlink-install --packages-select "$@" \
   --event-handlers console_direct- --cmake-args -DBUILD_TESTING=OFF

@@ -30,6 +30,7 @@ __all__ = [
     'fine_localize',
     'localize',
     'segment_object_points',
+    'crop_around',
 ]
 
 
@@ -202,12 +203,15 @@ def localize(model: ModelTemplate, scene_points: np.ndarray, *,
 
     :raises ValueError: unusable clouds.
     """
-    scene = prepare_scene(scene_points, model.voxel_size / 2.0)
     if prior is not None:
-        res = fine_localize(model, scene, prior, max_distance=max_distance, loss=loss,
-                            loss_scale=loss_scale)
-        if res.inlier_fraction >= min_inlier_fraction:
-            return res
+        # tracking: only the neighbourhood of the prior matters (and keeps ICP fast)
+        near = crop_around(scene_points, model, prior, 2.0 * max_distance + 0.01)
+        if len(near) >= 10:
+            res = fine_localize(model, prepare_scene(near, model.voxel_size / 2.0), prior,
+                                max_distance=max_distance, loss=loss, loss_scale=loss_scale)
+            if res.inlier_fraction >= min_inlier_fraction:
+                return res
+    scene = prepare_scene(scene_points, model.voxel_size / 2.0)
     search = prepare_scene(scene_points, model.voxel_size)
     if drop_plane:
         diameter = float(np.linalg.norm(model.points.max(axis=0) - model.points.min(axis=0)))
@@ -224,6 +228,19 @@ def localize(model: ModelTemplate, scene_points: np.ndarray, *,
             break
     assert best is not None
     return best
+
+
+def crop_around(points: np.ndarray, model: ModelTemplate, pose: np.ndarray,
+                margin: float) -> np.ndarray:
+    """Finite points (N, 3) [m] within the model's bounding sphere at ``pose`` plus ``margin``."""
+    P = np.asarray(points, dtype=float)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f'scene points must have shape (N, 3), got {P.shape}')
+    P = P[np.all(np.isfinite(P), axis=1)]
+    centre_model = 0.5 * (model.points.min(axis=0) + model.points.max(axis=0))
+    radius = float(np.max(np.linalg.norm(model.points - centre_model, axis=1)))
+    centre = pose[:3, :3] @ centre_model + pose[:3, 3]
+    return P[np.linalg.norm(P - centre, axis=1) <= radius + margin]
 
 
 def segment_object_points(points: np.ndarray, model: ModelTemplate, pose: np.ndarray,

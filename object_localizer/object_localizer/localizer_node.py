@@ -22,7 +22,7 @@ from nav_msgs.msg import Path
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from object_localizer.localization import prepare_model, segment_object_points
@@ -30,6 +30,7 @@ from object_localizer.tracking import ObjectTracker, TrackerSettings
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, \
     pointcloud2_to_array, stamp_to_ns, xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
+from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 
 __all__ = ['ObjectLocalizerNode', 'main']
 
@@ -49,6 +50,10 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('models', ['peg'], ParameterDescriptor(
             type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True,
             description='model names (OBJ files found by stereo_manip_tools.mesh_io.find_model)'))
+        self.declare_parameter('input_qos', 'reliable', ParameterDescriptor(
+            type=ParameterType.PARAMETER_STRING, read_only=True,
+            description='QoS of the points2 subscription: reliable (keep last 2) or '
+                        'sensor_data (best effort, for best-effort publishers)'))
         self.declare_parameter('voxel_size', 0.003, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE, read_only=True,
             description='sampling resolution of model and scene [m]',
@@ -63,23 +68,41 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('segment_margin', 0.005,
                                _float('margin around the model box for objects/<name>/cloud [m]',
                                       0.0, 0.1))
+        self.declare_parameter('initial_poses', Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=True,
+            description='optional start poses in the cloud frame, 7 numbers per model in '
+                        '`models` order: x y z [m] qx qy qz qw; unset = global search'))
         self.declare_parameter('track_length', 300, ParameterDescriptor(
             type=ParameterType.PARAMETER_INTEGER, description='poses kept in each track',
             integer_range=[IntegerRange(from_value=1, to_value=100000)]))
         voxel = self.get_parameter('voxel_size').value
+        names = list(self.get_parameter('models').value)
+        initial = self.get_parameter_or('initial_poses', None).value \
+            if self.has_parameter('initial_poses') else None
+        if initial is not None and len(initial) != 7 * len(names):
+            raise ValueError(f'initial_poses has {len(initial)} numbers; expected 7 per model '
+                             f'({7 * len(names)} for {names})')
         self.trackers: Dict[str, ObjectTracker] = {}
         self.pose_pubs = {}
         self.track_pubs = {}
         self.cloud_pubs = {}
-        for name in self.get_parameter('models').value:
+        for k, name in enumerate(names):
             mesh = load_obj(find_model(name))
             self.trackers[name] = ObjectTracker(prepare_model(mesh, voxel), self._settings())
+            if initial is not None:
+                x, y, z, qx, qy, qz, qw = initial[7 * k:7 * k + 7]
+                self.trackers[name].reset(make_transform(
+                    matrix_from_quaternion([qx, qy, qz, qw]), [x, y, z]))
             self.pose_pubs[name] = self.create_publisher(PoseStamped, f'objects/{name}/pose', 10)
             self.track_pubs[name] = self.create_publisher(Path, f'objects/{name}/track', 10)
             self.cloud_pubs[name] = self.create_publisher(PointCloud2, f'objects/{name}/cloud',
                                                           10)
         self.counts = {'received': 0, 'rejected': 0, 'not_found': 0}
-        self.create_subscription(PointCloud2, 'points2', self._on_cloud, qos_profile_sensor_data)
+        # A full-frame cloud is megabytes: best-effort DDS drops such samples whole when one
+        # fragment is lost, so the default is reliable with a short queue (newest kept).
+        qos = qos_profile_sensor_data if self.get_parameter('input_qos').value == 'sensor_data' \
+            else QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE)
+        self.create_subscription(PointCloud2, 'points2', self._on_cloud, qos)
         self.get_logger().info(f'localising {", ".join(self.trackers)} in points2')
 
     _SETTING_OF_PARAMETER = {'max_correspondence_distance': 'max_distance',
@@ -93,6 +116,10 @@ class ObjectLocalizerNode(Node):
 
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
         """The only writer of tracker settings at run time (ranges are checked by rclpy)."""
+        for p in params:
+            if p.name == 'input_qos' and p.value not in ('reliable', 'sensor_data'):
+                return SetParametersResult(successful=False,
+                                           reason='input_qos must be reliable or sensor_data')
         changes = {self._SETTING_OF_PARAMETER[p.name]: p.value for p in params
                    if p.name in self._SETTING_OF_PARAMETER}
         for tracker in getattr(self, 'trackers', {}).values():

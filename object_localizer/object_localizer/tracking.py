@@ -46,6 +46,10 @@ class ObjectTracker:
     lost_count: int = 0
     _prior: Optional[np.ndarray] = None
 
+    def reset(self, pose: Optional[np.ndarray] = None) -> None:
+        """Forget the track; with ``pose`` (4x4 model -> sensor) start tracking from it."""
+        self._prior = None if pose is None else np.asarray(pose, dtype=float).copy()
+
     def update(self, points: np.ndarray, stamp_ns: int) -> Optional[LocalizationResult]:
         """Localise in a new cloud (N, 3) [m]; returns None (and counts it) when not found.
 

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from rclpy.qos import qos_profile_sensor_data
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
@@ -30,7 +29,7 @@ def test_node_publishes_pose_of_object_in_cloud(ros_node):
     bad = PointCloud2(header=header, height=1, width=10, point_step=12,
                       fields=[PointField(name='x', offset=0, datatype=7, count=1)],
                       data=b'\0' * 120)
-    pub = ros_node.create_publisher(PointCloud2, '/points2', qos_profile_sensor_data)
+    pub = ros_node.create_publisher(PointCloud2, '/points2', 10)
     with start_executable('object_localizer', 'object_localizer_node',
                           ros_args=['-p', 'models:=[link_arm]'], observer=ros_node,
                           wait_for_node='object_localizer') as proc:
@@ -47,3 +46,15 @@ def test_node_publishes_pose_of_object_in_cloud(ros_node):
     assert add_s(pose_to_matrix(got.pose), T, prepare_model(arm).points) < 0.0015
     # the segmented cloud is the object's points (all of them; nothing else was in the scene)
     assert abs(len(pointcloud2_to_array(clouds[0])) - len(points)) <= 0.01 * len(points)
+
+
+@pytest.mark.process
+def test_node_refuses_malformed_initial_poses():
+    with start_executable('object_localizer', 'object_localizer_node',
+                          ros_args=['-p', 'models:=[link_arm]',
+                                    '-p', 'initial_poses:=[0.0, 0.0, 1.0]']) as proc:
+        proc.process.wait(60)
+        out = proc.output()
+    assert proc.process.returncode != 0
+    assert 'initial_poses has 3 numbers; expected 7 per model' in out
+    assert 'Traceback' not in out

@@ -323,8 +323,9 @@ class StereoCameraParameters:
 
     :ivar fx, fy, cx, cy: left projection intrinsics [px].
     :ivar baseline: distance between the optical centres [m] (> 0).
-    :ivar doffs: x-difference of the principal points, right minus left [px]
-        (``Z = fx * baseline / (d + cx_left - cx_right)`` in general; 0 for ROS-rectified pairs).
+    :ivar doffs: x-difference of the principal points, ``cx_right - cx_left`` [px], as
+        Middlebury's ``doffs``: ``Z = fx * baseline / (d + doffs)`` with ``d = x_left -
+        x_right``; 0 for the usual ROS rectification.
     :ivar width, height: image size [px].
     """
 
@@ -369,7 +370,7 @@ def stereo_parameters_from_camera_info(left: CameraInfo, right: CameraInfo
     return StereoCameraParameters(fx=float(fx), fy=float(fy), cx=float(Pl[0, 2]),
                                   cy=float(Pl[1, 2]), baseline=float(baseline),
                                   width=int(left.width), height=int(left.height),
-                                  doffs=float(Pl[0, 2] - Pr[0, 2]))
+                                  doffs=float(Pr[0, 2] - Pl[0, 2]))
 
 
 def camera_info_from_parameters(params: StereoCameraParameters, header: Header
@@ -382,7 +383,7 @@ def camera_info_from_parameters(params: StereoCameraParameters, header: Header
         ci.width, ci.height = params.width, params.height
         ci.distortion_model = 'plumb_bob'
         ci.d = [0.0] * 5
-        cx = params.cx if side == 'left' else params.cx - params.doffs
+        cx = params.cx if side == 'left' else params.cx + params.doffs
         ci.k = [params.fx, 0.0, cx, 0.0, params.fy, params.cy, 0.0, 0.0, 1.0]
         ci.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
         tx = 0.0 if side == 'left' else -params.fx * params.baseline

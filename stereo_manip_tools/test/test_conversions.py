@@ -104,3 +104,16 @@ def test_camera_info_errors():
     right.p[3] = 0.0
     with pytest.raises(ValueError, match='baseline'):
         stereo_parameters_from_camera_info(left, right)
+
+
+def test_principal_point_offset_follows_middlebury():
+    """Motorcycle (Middlebury 2014): f 994.978 px, doffs 31.086 px, baseline 193.001 mm;
+    a disparity of 40 px is a depth of f * B / (d + doffs) = 2.70 m."""
+    params = StereoCameraParameters(fx=994.978, fy=994.978, cx=311.193, cy=254.877,
+                                    baseline=0.193001, width=741, height=500, doffs=31.086)
+    left, right = camera_info_from_parameters(params, Header())
+    assert right.p[2] - left.p[2] == pytest.approx(31.086)
+    back = stereo_parameters_from_camera_info(left, right)
+    assert back.doffs == pytest.approx(31.086)
+    assert back.depth_from_disparity(np.array([[40.0]]))[0, 0] == pytest.approx(
+        994.978 * 0.193001 / 71.086, rel=1e-6)

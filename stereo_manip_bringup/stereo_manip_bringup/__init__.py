@@ -1,0 +1,1 @@
+"""Bring-up of the stereo_manip graph: the demo pipeline runner and the launch file."""
