@@ -19,5 +19,5 @@ pytest_plugins = ['stereo_manip_tools.testing']
 import importlib  # noqa: E402
 
 for _pkg in ('stereo_manip_tools', 'stereo_depth', 'object_localizer', 'contact_correction',
-             'joint_estimator', 'ip_modeler'):
+             'joint_estimator', 'ip_modeler', 'stereo_manip_bringup'):
     importlib.import_module(_pkg)

@@ -32,7 +32,7 @@ def main() -> None:
     env = dict(os.environ, AMENT_PREFIX_PATH=str(venv), CMAKE_PREFIX_PATH=str(venv),
                PATH=f'{venv / "bin"}:{os.environ["PATH"]}')
     pkgs = ['msgs', 'stereo_manip_tools', 'stereo_depth', 'object_localizer',
-            'contact_correction', 'joint_estimator', 'ip_modeler']
+            'contact_correction', 'joint_estimator', 'ip_modeler', 'stereo_manip_bringup']
     colcon = ['colcon', '--log-base', str(ROOT / 'log'), 'build', '--base-paths', *pkgs,
               '--build-base', 'build', '--install-base', 'install', '--symlink-install',
               '--cmake-args', '-DBUILD_TESTING=OFF']
@@ -43,7 +43,7 @@ def main() -> None:
     ], bootstrap_second_run_s=bootstrap_again, colcon_rebuild_no_change_s=colcon_again,
         note='bootstrap skips pip while requirements.txt is unchanged and colcon while no '
              'package file is newer than the last build; the colcon figure is a full forced '
-             'rebuild of all 7 packages (msgs is ament_cmake, the rest ament_python).')
+             'rebuild of all 8 packages (msgs is ament_cmake, the rest ament_python).')
 
 
 if __name__ == '__main__':

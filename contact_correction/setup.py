@@ -1,5 +1,3 @@
-from glob import glob
-
 from setuptools import find_packages, setup
 
 package_name = 'contact_correction'
@@ -17,7 +15,8 @@ setup(
     zip_safe=False,
     maintainer='stereo_manip maintainers',
     maintainer_email='maintainers@stereo-manip.org',
-    description='Vision error correction with contact relations between polyhedra (non-linear step, then the linear optimum of Eqs. 2-9).',
+    description=('Vision error correction with contact relations between polyhedra (non-linear '
+                 'step, then the linear optimum of Eqs. 2-9).'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

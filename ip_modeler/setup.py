@@ -1,5 +1,3 @@
-from glob import glob
-
 from setuptools import find_packages, setup
 
 package_name = 'ip_modeler'
@@ -17,7 +15,8 @@ setup(
     zip_safe=False,
     maintainer='stereo_manip maintainers',
     maintainer_email='maintainers@stereo-manip.org',
-    description='Implicit-polynomial surface fitting with adaptive degree by incremental QR (Eqs. 19-22).',
+    description=('Implicit-polynomial surface fitting with adaptive degree by incremental QR '
+                 '(Eqs. 19-22).'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

@@ -1,5 +1,3 @@
-from glob import glob
-
 from setuptools import find_packages, setup
 
 package_name = 'joint_estimator'
@@ -17,7 +15,8 @@ setup(
     zip_safe=False,
     maintainer='stereo_manip maintainers',
     maintainer_email='maintainers@stereo-manip.org',
-    description='Joint parameters and corrected trajectories from two links pose tracks (Eqs. 10-18), with automatic joint type selection.',
+    description=('Joint parameters and corrected trajectories from two links pose tracks (Eqs. '
+                 '10-18), with automatic joint type selection.'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

@@ -18,7 +18,8 @@ setup(
     zip_safe=False,
     maintainer='stereo_manip maintainers',
     maintainer_email='maintainers@stereo-manip.org',
-    description='Stereo pairs to disparity, depth and point clouds (matching cost, aggregation, optimisation of Eq. 1, refinement) and the synthetic stereo camera.',
+    description=('Stereo pairs to disparity, depth and point clouds (matching cost, aggregation, '
+                 'optimisation of Eq. 1, refinement) and the synthetic stereo camera.'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

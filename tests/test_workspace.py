@@ -10,7 +10,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON_PACKAGES = ['stereo_manip_tools', 'stereo_depth', 'object_localizer',
-                   'contact_correction', 'joint_estimator', 'ip_modeler']
+                   'contact_correction', 'joint_estimator', 'ip_modeler', 'stereo_manip_bringup']
 
 
 def console_scripts(package: str):

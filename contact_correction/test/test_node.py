@@ -1,13 +1,11 @@
 """contact_correction_node in-process and as an installed executable; the offline command."""
 
-import time
 
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
 import pytest
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from std_msgs.msg import Header
 from stereo_manip_msgs.msg import ContactState
@@ -39,16 +37,7 @@ def _stamped(T, stamp_ns, frame='world'):
 
 
 def _spin_both(nodes, predicate, timeout=20.0):
-    ex = SingleThreadedExecutor(context=nodes[0].context)
-    for n in nodes:
-        ex.add_node(n)
-    try:
-        deadline = time.monotonic() + timeout
-        while not predicate() and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.02)
-        return predicate()
-    finally:
-        ex.shutdown()
+    return spin_until(nodes, predicate, timeout)
 
 
 @pytest.fixture

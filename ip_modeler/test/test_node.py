@@ -1,11 +1,9 @@
 """ip_modeler_node: in-process (rclpy) and as an installed executable (own process)."""
 
-import time
 
 import numpy as np
 import pytest
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -34,16 +32,7 @@ def _cloud(shape='sphere', n=800, normals=True, seed=0):
 
 
 def _spin_both(nodes, predicate, timeout=30.0):
-    ex = SingleThreadedExecutor(context=nodes[0].context)
-    for n in nodes:
-        ex.add_node(n)
-    try:
-        deadline = time.monotonic() + timeout
-        while not predicate() and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.02)
-        return predicate()
-    finally:
-        ex.shutdown()
+    return spin_until(nodes, predicate, timeout)
 
 
 @pytest.fixture

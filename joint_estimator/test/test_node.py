@@ -43,18 +43,7 @@ def estimator(ros_node):
 
 
 def _spin_both(nodes, predicate, timeout=20.0):
-    from rclpy.executors import SingleThreadedExecutor
-    import time
-    ex = SingleThreadedExecutor(context=nodes[0].context)
-    for n in nodes:
-        ex.add_node(n)
-    try:
-        deadline = time.monotonic() + timeout
-        while not predicate() and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.02)
-        return predicate()
-    finally:
-        ex.shutdown()
+    return spin_until(nodes, predicate, timeout)
 
 
 @pytest.mark.ros

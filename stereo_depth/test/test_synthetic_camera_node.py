@@ -1,11 +1,9 @@
 """synthetic_camera node: parameters, synchronized publishing, CameraInfo geometry (in-process
 and as its own process from the install tree)."""
 
-import time
 
 import numpy as np
 import pytest
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
@@ -38,18 +36,7 @@ class _Collector:
 
 
 def _spin_both(cam, obs, pred, timeout):
-    ex = SingleThreadedExecutor(context=obs.context)
-    ex.add_node(cam)
-    ex.add_node(obs)
-    try:
-        end = time.monotonic() + timeout
-        while not pred() and time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.02)
-        return pred()
-    finally:
-        ex.remove_node(cam)
-        ex.remove_node(obs)
-        ex.shutdown()
+    return spin_until([obs, cam], pred, timeout)
 
 
 @pytest.mark.ros

@@ -13,7 +13,7 @@ import signal
 import subprocess
 import tempfile
 import time
-from typing import Any, Callable, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence, Union
 import uuid
 
 import rclpy
@@ -38,11 +38,14 @@ def shutdown_node(node: Node) -> None:
     rclpy.try_shutdown(context=context)
 
 
-def spin_until(node: Node, predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
-    """Spin ``node`` until ``predicate()`` is true or ``timeout`` [s] expires; returns the result.
-    """
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
+def spin_until(nodes: Union[Node, Sequence[Node]], predicate: Callable[[], bool],
+               timeout: float = 10.0) -> bool:
+    """Spin one node, or several nodes of one context together (e.g. a node under test and the
+    test's own node), until ``predicate()`` is true or ``timeout`` [s] expires; returns it."""
+    group = [nodes] if isinstance(nodes, Node) else list(nodes)
+    executor = SingleThreadedExecutor(context=group[0].context)
+    for node in group:
+        executor.add_node(node)
     try:
         deadline = time.monotonic() + timeout
         while not predicate():
@@ -51,7 +54,8 @@ def spin_until(node: Node, predicate: Callable[[], bool], timeout: float = 10.0)
             executor.spin_once(timeout_sec=0.02)
         return True
     finally:
-        executor.remove_node(node)
+        for node in group:
+            executor.remove_node(node)
         executor.shutdown()
 
 
