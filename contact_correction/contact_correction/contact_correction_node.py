@@ -25,8 +25,7 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
-    ParameterType, SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -41,30 +40,10 @@ from contact_correction.polyhedron import Polyhedron, load_polyhedron
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_stamped_to_matrix
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
+from stereo_manip_tools.parameters import bool_descriptor as _bool, \
+    float_descriptor as _float, int_descriptor as _int, string_descriptor as _string
 
 __all__ = ['ContactCorrectionNode', 'main']
-
-
-def _float(desc: str, lo: float, hi: float, read_only: bool = False) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_DOUBLE, description=desc,
-                               read_only=read_only,
-                               floating_point_range=[FloatingPointRange(from_value=lo,
-                                                                        to_value=hi)])
-
-
-def _int(desc: str, lo: int, hi: int, read_only: bool = False) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_INTEGER, description=desc,
-                               read_only=read_only,
-                               integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
-
-
-def _string(desc: str, read_only: bool = False) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_STRING, description=desc,
-                               read_only=read_only)
-
-
-def _bool(desc: str) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_BOOL, description=desc)
 
 
 def static_pose(values: List[float]) -> np.ndarray:

@@ -24,8 +24,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
-    ParameterType, SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -40,21 +39,9 @@ from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_se
 from ip_modeler.fitting import estimate_normals, fit_implicit_polynomial, \
     MAX_SUPPORTED_DEGREE
 from ip_modeler.incremental_qr import STABILIZATION_MODES
+from stereo_manip_tools.parameters import float_descriptor as _float, int_descriptor as _int
 
 __all__ = ['IpModelerNode', 'main']
-
-
-def _float(desc: str, lo: float, hi: float, read_only: bool = False) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_DOUBLE, description=desc,
-                               read_only=read_only,
-                               floating_point_range=[FloatingPointRange(from_value=lo,
-                                                                        to_value=hi)])
-
-
-def _int(desc: str, lo: int, hi: int, read_only: bool = False) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_INTEGER, description=desc,
-                               read_only=read_only,
-                               integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
 
 
 class IpModelerNode(Node):

@@ -30,8 +30,7 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
-    ParameterType, SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -46,30 +45,14 @@ from joint_estimator.selection import estimate_joint, JointEstimation
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     numpy_to_point, numpy_to_vector3, path_to_matrices, pose_stamped_to_matrix
 from stereo_manip_tools.sync import StampSynchronizer
+from stereo_manip_tools.parameters import (
+    float_descriptor as _float, int_descriptor as _int, string_descriptor as _string)
 
 __all__ = ['JointEstimatorNode', 'estimation_to_msg', 'estimation_to_marker', 'JOINT_TYPE_NAMES',
            'main']
 
 #: Parameter values of ``joint_type`` and their JointEstimate constants (auto: 255).
 JOINT_TYPE_NAMES = {'auto': 255, **{t.name.lower(): int(t) for t in JointType}}
-
-
-def _float(desc: str, lo: float, hi: float, read_only: bool = False) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_DOUBLE, description=desc,
-                               read_only=read_only,
-                               floating_point_range=[FloatingPointRange(from_value=lo,
-                                                                        to_value=hi)])
-
-
-def _int(desc: str, lo: int, hi: int, read_only: bool = False) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_INTEGER, description=desc,
-                               read_only=read_only,
-                               integer_range=[IntegerRange(from_value=lo, to_value=hi, step=1)])
-
-
-def _string(desc: str, read_only: bool = False) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_STRING, description=desc,
-                               read_only=read_only)
 
 
 def joint_position(estimation: JointEstimation) -> float:

@@ -31,14 +31,9 @@ from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, \
     pointcloud2_to_array, stamp_to_ns, xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
+from stereo_manip_tools.parameters import float_descriptor as _float
 
 __all__ = ['ObjectLocalizerNode', 'main']
-
-
-def _float(desc: str, lo: float, hi: float) -> ParameterDescriptor:
-    return ParameterDescriptor(type=ParameterType.PARAMETER_DOUBLE, description=desc,
-                               floating_point_range=[FloatingPointRange(from_value=lo,
-                                                                        to_value=hi)])
 
 
 class ObjectLocalizerNode(Node):
