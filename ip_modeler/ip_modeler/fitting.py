@@ -124,6 +124,8 @@ class DegreeStep:
     min_diagonal_ratio: float  # smallest |r_jj| / ||m_j|| among this degree's columns
     condition_estimate: float  # max |r_ii| / min |r_ii| over all accepted columns
     seconds: float  # cumulative time since the fit started
+    ridge: float = 0.0  # global ridge weight used (raised by the spurious-sheet check)
+    spurious_sheets: int = -1  # pieces found by the check at the final ridge (-1: not checked)
 
 
 @dataclass
@@ -241,6 +243,23 @@ def three_layer_data(points_n: np.ndarray, normals: np.ndarray,
     return X, b
 
 
+_RIDGE_STEP = 10.0 ** 0.5
+
+
+def _spurious_sheet_count(model: 'ImplicitPolynomialModel', points: np.ndarray,
+                          resolution: int) -> int:
+    """Spurious zero-set pieces of ``model`` judged on the input ``points`` [m] alone.
+
+    Same rule as :func:`ip_modeler.evaluation.spurious_sheets` (box grown 10 %, tolerance 10 %
+    of the box's largest side), on a coarser grid.
+    """
+    from ip_modeler.evaluation import bounding_region, spurious_sheets, zero_set_mesh
+
+    size = float(np.max(points.max(axis=0) - points.min(axis=0)))
+    mesh = zero_set_mesh(model, *bounding_region(points, 0.35), resolution=resolution)
+    return int(spurious_sheets(mesh, points, 0.1 * size, bounding_region(points, 0.1))['count'])
+
+
 def _rms_first_order(a: np.ndarray, M: np.ndarray, G: np.ndarray, scale: float) -> float:
     """RMS of |f|/|grad f| [m] at the data points from their monomial (gradient) matrices."""
     k = a.size
@@ -275,7 +294,9 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
                             stability_tol: float = 1e-6, ridge: float = 1e-6,
                             min_improvement: float = 0.05,
                             patience: int = 3, viewpoint: Optional[np.ndarray] = None,
-                            variant: str = 'classical') -> FitResult:
+                            variant: str = 'classical', sheet_check: bool = True,
+                            max_sheet_ridge: float = 1e-4,
+                            sheet_check_resolution: int = 64) -> FitResult:
     """Adaptive-degree 3L implicit-polynomial fit by incremental QR (Section 5, Eqs. 19-22).
 
     :param points: (N, 3) object points [m].
@@ -296,6 +317,14 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
     :param patience: stop after this many consecutive degrees without progress.
     :param viewpoint: sensor position [m] for orienting estimated normals.
     :param variant: ``'classical'`` or ``'modified'`` block Gram-Schmidt.
+    :param sheet_check: after each degree's solve, look for spurious zero-set sheets (pieces
+        of the zero set inside the input's bounding box grown 10 % that never come within
+        10 % of its largest side of an input point) and, while there are any, raise the
+        global ridge by sqrt(10) and solve again (up to ``max_sheet_ridge``). The re-solve
+        reuses the factorisation; the check costs a marching-cubes pass per solve.
+    :param max_sheet_ridge: largest ridge the sheet check may use.
+    :param sheet_check_resolution: marching-cubes samples along the longest side of the
+        check's grid (the input's bounding box grown 35 %).
     :returns: :class:`FitResult`; ``result.model`` is the selected polynomial.
     :raises ValueError: on bad input (NaN, too few points, planar/collinear cloud, bad
         parameters), with a message naming the problem.
@@ -332,6 +361,16 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
         before_dropped, before_unstable = len(qr.dropped), len(qr.unstable)
         qr.append(M_all[:, cols])
         a = qr.solve(ridge=ridge)
+        used_ridge, sheets = ridge, -1
+        if sheet_check and np.all(np.isfinite(a)) and np.any(a[1:]):
+            sheets = _spurious_sheet_count(ImplicitPolynomialModel(degree, a, centre, scale),
+                                           P, sheet_check_resolution)
+            while sheets > 0 and used_ridge * _RIDGE_STEP <= max_sheet_ridge * (1 + 1e-9):
+                used_ridge = max(used_ridge, 1e-7) * _RIDGE_STEP
+                a = qr.solve(ridge=used_ridge)
+                sheets = _spurious_sheet_count(
+                    ImplicitPolynomialModel(degree, a, centre, scale), P,
+                    sheet_check_resolution)
         if not np.all(np.isfinite(a)) or not np.any(a[1:]):
             rms = float('inf')
         else:
@@ -343,9 +382,10 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
             regularised=len(qr.unstable) - before_unstable,
             min_diagonal_ratio=float(ratios.min()) if ratios.size else float('nan'),
             condition_estimate=qr.condition_estimate(),
-            seconds=time.perf_counter() - t0))
+            seconds=time.perf_counter() - t0, ridge=used_ridge, spurious_sheets=sheets))
         notes = (f'degree {degree}: {len(qr.dropped)} columns dropped, {len(qr.unstable)} '
-                 f'ridge-regularised, R diagonal condition {qr.condition_estimate():.3g}')
+                 f'ridge-regularised, R diagonal condition {qr.condition_estimate():.3g}, '
+                 f'ridge {used_ridge:.3g}')
         result.models[degree] = ImplicitPolynomialModel(degree, a, centre, scale, method, notes)
         if degree < min_degree:
             continue

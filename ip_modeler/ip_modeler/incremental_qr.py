@@ -6,7 +6,17 @@ one block of columns; Gram-Schmidt works from left to right, so every column of 
 already computed is reused and only the new block is orthogonalised (the shaded part of
 Fig. 14).
 
-The new block is orthogonalised by block Gram-Schmidt with re-orthogonalisation: the previous
+Default (``variant='classical'``): BCGS2 (Barlow & Smoktunowicz 2013) in BLAS-3 calls only -
+project the block off Q, factorise it locally (Cholesky QR, or Householder near the stability
+thresholds), project again, Cholesky QR of the nearly orthonormal result; the block is copied
+once into Q's preallocated Fortran-order columns and worked on in place. Every column gets the
+second pass: with monomials each new column keeps far less than 1/sqrt(2) of its norm off the
+old span (the DGKS test asks for the second pass on all of them), so selective
+re-orthogonalisation saves nothing here. Ill-conditioned blocks fall back to the column-wise
+path below.
+
+Column-wise path (``variant='modified'`` and the fallback): the new block is orthogonalised by
+block Gram-Schmidt with re-orthogonalisation: the previous
 columns of ``Q`` are projected out as BLAS-3 products (``variant='classical'``: all previous
 columns in one product, BCGS2; ``'modified'``: the previous degree blocks one after another,
 BMGS2), and a second pass is made for every column whose norm fell below 1/sqrt(2) in the first
@@ -29,7 +39,9 @@ import math
 from typing import List, Optional
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.linalg import cho_factor, cho_solve, qr, solve_triangular
+from scipy.linalg.blas import dgemm, dsyrk, dtrsm
+from scipy.linalg.lapack import dpotrf
 
 __all__ = ['IncrementalQR', 'STABILIZATION_MODES']
 
@@ -146,20 +158,30 @@ class IncrementalQR:
         :returns: boolean mask (m,) of the columns accepted into Q.
         :raises ValueError: on a wrong row count or non-finite values.
         """
-        W = np.array(block, dtype=float, order='F', copy=True)
-        if W.ndim == 1:
-            W = W[:, None]
-        if W.ndim != 2 or W.shape[0] != self.n_rows:
-            raise ValueError(f'block has shape {W.shape}, the factorisation has '
+        B = np.asarray(block, dtype=float)
+        if B.ndim == 1:
+            B = B[:, None]
+        if B.ndim != 2 or B.shape[0] != self.n_rows:
+            raise ValueError(f'block has shape {B.shape}, the factorisation has '
                              f'{self.n_rows} rows')
-        if not np.all(np.isfinite(W)):
-            raise ValueError('block contains NaN or infinite values')
-        m = W.shape[1]
+        m = B.shape[1]
         self._reserve(m)
         k0 = self.rank
-        norms = np.linalg.norm(W, axis=0)
+        # the block is copied straight into Q's free columns (Fortran order) and worked on there
+        W = self._Q[:, k0:k0 + m]
+        W[...] = B
+        norms = np.sqrt(np.einsum('ij,ij->j', W, W))
+        if not np.all(np.isfinite(norms)):
+            if not np.all(np.isfinite(W)):
+                raise ValueError('block contains NaN or infinite values')
+            raise ValueError('block column norms overflow (values too large)')
         if m:
             self._ref_norm = max(self._ref_norm, float(norms.max()))
+        if self.variant == 'classical' and m:
+            mask = self._append_bcgs2(W, norms)
+            if mask is not None:
+                return mask
+        W = np.array(B, dtype=float, order='F', copy=True)
         # C[p, j]: coefficient of new column j on Q column p (R's new column, Eq. 22).
         C = np.zeros((k0 + m, m))
         if k0:
@@ -185,6 +207,103 @@ class IncrementalQR:
             self._qtb[new] = self._Q[:, new].T @ self.b
         self.n_columns += m
         return accepted_mask
+
+    def _append_bcgs2(self, W: np.ndarray, norms: np.ndarray) -> Optional[np.ndarray]:
+        """Block classical Gram-Schmidt with one re-orthogonalisation (BCGS2), BLAS-3 only.
+
+        Barlow & Smoktunowicz (2013): ``W1 = (I - Q Q^T) W``, ``W1 = Q1 R1`` (local Householder
+        QR; ``Q1 = W1 R1^-1``), ``W2 = (I - Q Q^T) Q1`` and ``W2 = Q2 R2`` (Cholesky QR, exact
+        here because ``W2`` is orthonormal up to ``eps * cond(W1)``); the block's new columns
+        of R are ``Q^T W = H1 + H2 R1`` and the diagonal block ``R2 R1``. The second pass is
+        made for every column: with monomials the DGKS criterion asks for it on all of them
+        anyway (a new monomial keeps far less than 1/sqrt(2) of its norm off the old span).
+        ``|r_jj|`` of the local QR is the norm of column j off everything before it, so the
+        stability test and dropping are those of column-wise Gram-Schmidt; a dropped column
+        is removed and the local QR repeated on the rest.
+
+        :returns: the accepted-column mask, or ``None`` (nothing changed) when the block is
+            too ill-conditioned for the Cholesky step; the caller then falls back to the
+            column-wise path.
+        """
+        n, m = W.shape
+        k0 = self._rank
+        Q = self._Q[:, :k0]
+        if k0:
+            H1 = dgemm(1.0, Q, W, trans_a=True)
+            dgemm(-1.0, Q, H1, beta=1.0, c=W, overwrite_c=True)
+        else:
+            H1 = np.zeros((0, m))
+        status = np.ones(m, dtype=np.int8)
+        ratios = np.zeros(m)
+        # Fast local factorisation: Cholesky QR of W1 (accurate enough as a first pass when
+        # the block is well conditioned, the second pass makes it exact: CholQR2, Yamamoto
+        # et al. 2015). Blocks that are ill-conditioned or have a column near the stability
+        # thresholds take the Householder route, whose |r_jj| are accurate for the test.
+        R1, info = dpotrf(dsyrk(1.0, W, trans=1), lower=0, clean=1, overwrite_a=1)
+        d = np.abs(np.diag(R1)) if info == 0 else np.zeros(m)
+        ref = self._ref_norm if self._ref_norm > 0 else 1.0
+        safe = (info == 0 and d.min() > 1e-5 * d.max() and d.min() > 1e-5 * norms.max()
+                and d.min() > 2.0 * self.stability_tol * ref)
+        if safe:
+            keep = np.arange(m)
+            ratios[:] = d / ref
+        else:
+            cols = list(range(m))
+            while cols:
+                R1 = qr(W[:, cols], mode='r', check_finite=False)[0][:len(cols)]
+                d = np.abs(np.diag(R1))
+                ratios[cols] = d / ref if self._ref_norm > 0 else 0.0
+                nc = norms[cols]
+                rho = np.where(nc > 0, d / np.where(nc > 0, nc, 1.0), 0.0)
+                unstable = ratios[cols] < self.stability_tol
+                bad = (rho < _NOISE_FLOOR) | (unstable & (self.stabilization == 'drop'))
+                if bad.any():
+                    j = int(np.flatnonzero(bad)[0])
+                    status[cols[j]] = -1
+                    del cols[j]
+                    continue
+                status[cols] = np.where(unstable & (self.stabilization == 'ridge'), 2, 1)
+                break
+            keep = np.asarray(cols, dtype=np.int64)
+            if keep.size:
+                if d.min() < 1e-10 * d.max():
+                    return None  # local condition too high for the Cholesky step
+                R1 = np.array(R1 * np.sign(np.diag(R1))[:, None], order='F')
+        mk = keep.size
+        if mk:
+            new = slice(k0, k0 + mk)
+            target = self._Q[:, new]
+            Q1 = W if mk == m else np.asfortranarray(W[:, keep])
+            Q1 = dtrsm(1.0, R1, Q1, side=1, lower=0, overwrite_b=1)  # Q1 = W1 R1^-1
+            if k0:
+                H2 = dgemm(1.0, Q, Q1, trans_a=True)
+                Q1 = dgemm(-1.0, Q, H2, beta=1.0, c=Q1, overwrite_c=True)
+            R2, info = dpotrf(dsyrk(1.0, Q1, trans=1), lower=0, clean=1, overwrite_a=1)
+            if info != 0 or np.abs(np.diag(R2) - 1.0).max() > 1e-3:
+                return None  # Q1 far from orthonormal: the block was too ill-conditioned
+            Q2 = dtrsm(1.0, R2, Q1, side=1, lower=0, overwrite_b=1)  # Q2 = W2 R2^-1
+            if not np.shares_memory(Q2, target) or mk < m:
+                target[...] = Q2
+            if k0:
+                self._R[:k0, new] = H1[:, keep] + H2 @ R1
+            self._R[new, new] = R2 @ R1
+            self._qtb[new] = Q2.T @ self.b
+            self._blocks.append(new)
+            self._rank = k0 + mk
+            self.reorthogonalised += mk
+        # bookkeeping in column order (as the column-wise path does)
+        for j in range(m):
+            col = self.n_columns + j
+            self.column_norms.append(float(norms[j]))
+            self.diagonal_ratio.append(float(ratios[j]))
+            if status[j] < 0:
+                self.dropped.append(col)
+                continue
+            self.accepted.append(col)
+            if status[j] == 2:
+                self.unstable.append(col)
+        self.n_columns += m
+        return status > 0
 
     def _project(self, W: np.ndarray, rows: slice, C: np.ndarray, norms: np.ndarray,
                  cols: np.ndarray) -> None:
