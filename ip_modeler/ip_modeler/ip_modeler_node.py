@@ -28,7 +28,6 @@ from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParameters
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from stereo_manip_msgs.msg import ImplicitPolynomial
 from stereo_manip_msgs.srv import FitImplicitPolynomial
@@ -39,7 +38,8 @@ from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_se
 from ip_modeler.fitting import estimate_normals, fit_implicit_polynomial, \
     MAX_SUPPORTED_DEGREE
 from ip_modeler.incremental_qr import STABILIZATION_MODES
-from stereo_manip_tools.parameters import float_descriptor as _float, int_descriptor as _int
+from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
+    input_qos_descriptor, input_qos_profile, int_descriptor as _int
 
 __all__ = ['IpModelerNode', 'main']
 
@@ -80,10 +80,7 @@ class IpModelerNode(Node):
             type=ParameterType.PARAMETER_DOUBLE_ARRAY,
             description='sensor position [m] in the cloud frame, for orienting estimated '
                         'normals outward (optical frame: the origin)'))
-        self.declare_parameter('input_qos', 'sensor_data', ParameterDescriptor(
-            type=ParameterType.PARAMETER_STRING, read_only=True,
-            description='QoS of the cloud subscription: sensor_data (best effort) or reliable '
-                        '(keep last 2; lossless for large clouds on one machine)'))
+        self.declare_parameter('input_qos', 'sensor_data', input_qos_descriptor('cloud'))
         self.declare_parameter('max_points', 5000, _int(
             'clouds with more points are randomly subsampled to this many (counted)',
             10, 10_000_000))
@@ -96,9 +93,8 @@ class IpModelerNode(Node):
         self._rng = np.random.default_rng(0)
         self.poly_pub = self.create_publisher(ImplicitPolynomial, 'implicit_polynomial', 10)
         self.marker_pub = self.create_publisher(Marker, 'zero_set_marker', 10)
-        qos = qos_profile_sensor_data if self.get_parameter('input_qos').value == 'sensor_data' \
-            else QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE)
-        self.create_subscription(PointCloud2, 'cloud', self._on_cloud, qos)
+        self.create_subscription(PointCloud2, 'cloud', self._on_cloud,
+                                 input_qos_profile(self.get_parameter('input_qos').value))
         self.create_service(FitImplicitPolynomial, 'fit_implicit_polynomial', self._on_service)
         self.get_logger().info(
             f'ip_modeler: max degree {self.get_parameter("max_degree").value}, target RMS '
@@ -109,9 +105,9 @@ class IpModelerNode(Node):
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
         """Checks beyond the descriptors' ranges."""
         for p in params:
-            if p.name == 'input_qos' and p.value not in ('sensor_data', 'reliable'):
+            if p.name == 'input_qos' and p.value not in INPUT_QOS_CHOICES:
                 return SetParametersResult(
-                    successful=False, reason=f'input_qos must be sensor_data or reliable, '
+                    successful=False, reason=f'input_qos must be one of {INPUT_QOS_CHOICES}, '
                     f'got {p.value!r}')
             if p.name == 'stabilization' and p.value not in STABILIZATION_MODES:
                 return SetParametersResult(

@@ -161,7 +161,11 @@ def test_installed_executable_serves_and_streams(ros_node):
         ros_node.create_subscription(ImplicitPolynomial, 'implicit_polynomial', got.append, 10)
         pub = ros_node.create_publisher(PointCloud2, 'cloud', 10)
         assert spin_until(ros_node, lambda: pub.get_subscription_count() > 0, 20)
-        pub.publish(cloud)
-        assert spin_until(ros_node, lambda: len(got) >= 1, 60), proc.output()
+        # best-effort input: the first sample can race discovery, so offer it until one lands
+        for _ in range(30):
+            pub.publish(cloud)
+            if spin_until(ros_node, lambda: len(got) >= 1, 2.0):
+                break
+        assert got, proc.output()
         assert got[0].degree == 2
     assert rclpy.ok(context=ros_node.context)

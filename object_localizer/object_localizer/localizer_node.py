@@ -22,7 +22,6 @@ from nav_msgs.msg import Path
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from object_localizer.localization import prepare_model, segment_object_points
@@ -31,7 +30,8 @@ from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, \
     pointcloud2_to_array, stamp_to_ns, xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
-from stereo_manip_tools.parameters import float_descriptor as _float
+from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
+    input_qos_descriptor, input_qos_profile
 
 __all__ = ['ObjectLocalizerNode', 'main']
 
@@ -45,10 +45,7 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('models', ['peg'], ParameterDescriptor(
             type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True,
             description='model names (OBJ files found by stereo_manip_tools.mesh_io.find_model)'))
-        self.declare_parameter('input_qos', 'reliable', ParameterDescriptor(
-            type=ParameterType.PARAMETER_STRING, read_only=True,
-            description='QoS of the points2 subscription: reliable (keep last 2) or '
-                        'sensor_data (best effort, for best-effort publishers)'))
+        self.declare_parameter('input_qos', 'reliable', input_qos_descriptor('points2'))
         self.declare_parameter('voxel_size', 0.003, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE, read_only=True,
             description='sampling resolution of model and scene [m]',
@@ -95,9 +92,8 @@ class ObjectLocalizerNode(Node):
         self.counts = {'received': 0, 'rejected': 0, 'not_found': 0}
         # A full-frame cloud is megabytes: best-effort DDS drops such samples whole when one
         # fragment is lost, so the default is reliable with a short queue (newest kept).
-        qos = qos_profile_sensor_data if self.get_parameter('input_qos').value == 'sensor_data' \
-            else QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE)
-        self.create_subscription(PointCloud2, 'points2', self._on_cloud, qos)
+        self.create_subscription(PointCloud2, 'points2', self._on_cloud,
+                                 input_qos_profile(self.get_parameter('input_qos').value))
         self.get_logger().info(f'localising {", ".join(self.trackers)} in points2')
 
     _SETTING_OF_PARAMETER = {'max_correspondence_distance': 'max_distance',
@@ -112,9 +108,9 @@ class ObjectLocalizerNode(Node):
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
         """The only writer of tracker settings at run time (ranges are checked by rclpy)."""
         for p in params:
-            if p.name == 'input_qos' and p.value not in ('reliable', 'sensor_data'):
+            if p.name == 'input_qos' and p.value not in INPUT_QOS_CHOICES:
                 return SetParametersResult(successful=False,
-                                           reason='input_qos must be reliable or sensor_data')
+                                           reason=f'input_qos must be one of {INPUT_QOS_CHOICES}')
         changes = {self._SETTING_OF_PARAMETER[p.name]: p.value for p in params
                    if p.name in self._SETTING_OF_PARAMETER}
         for tracker in getattr(self, 'trackers', {}).values():

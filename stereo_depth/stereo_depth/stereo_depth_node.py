@@ -33,7 +33,6 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 ParameterType, SetParametersResult)
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, RegionOfInterest
 from stereo_msgs.msg import DisparityImage
 
@@ -41,6 +40,8 @@ from stereo_depth.pipeline import (available_methods, compute_disparity, depth_t
                                    disparity_to_depth, method_defaults)
 from stereo_manip_tools.conversions import (image_to_numpy, numpy_to_image, stamp_to_ns,
                                             xyz_to_pointcloud2)
+from stereo_manip_tools.parameters import INPUT_QOS_CHOICES, input_qos_descriptor, \
+    input_qos_profile
 from stereo_manip_tools.sync import StampSynchronizer
 
 __all__ = ['StereoDepthNode', 'prepare_pair', 'stereo_geometry', 'main', 'SUPPORTED_ENCODINGS']
@@ -159,10 +160,7 @@ _PARAMS = {
     'sync_tolerance': (0.0, _descriptor(
         'largest stamp difference [s] between paired left/right images; 0 = exact stamps',
         ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 1.0))),
-    'input_qos': ('sensor_data', _descriptor(
-        'QoS of the image and camera_info subscriptions: sensor_data (best effort, REP 2003) '
-        'or reliable (keep last 5; lossless on one machine)', ParameterType.PARAMETER_STRING,
-        read_only=True, additional='sensor_data or reliable')),
+    'input_qos': ('sensor_data', input_qos_descriptor('image and camera_info')),
     'sync_queue_size': (10, _descriptor(
         'images kept per side while waiting for the partner', ParameterType.PARAMETER_INTEGER,
         int_range=(1, 100), read_only=True)),
@@ -199,8 +197,8 @@ def validate_parameter(name: str, value: Any, current: Dict[str, Any]) -> Option
     """Reason the new value is invalid, or None (cross-parameter rules included)."""
     if name == 'method' and value not in available_methods():
         return f"method must be one of {available_methods()}, got '{value}'"
-    if name == 'input_qos' and value not in ('sensor_data', 'reliable'):
-        return f"input_qos must be sensor_data or reliable, got '{value}'"
+    if name == 'input_qos' and value not in INPUT_QOS_CHOICES:
+        return f"input_qos must be one of {INPUT_QOS_CHOICES}, got '{value}'"
     if name == 'median' and value % 2 == 0:
         return f'median window must be odd, got {value}'
     if name == 'block_size' and value % 2 == 0:
@@ -240,8 +238,7 @@ class StereoDepthNode(Node):
         self.pub_disparity = self.create_publisher(DisparityImage, 'disparity', 5)
         self.pub_depth = self.create_publisher(Image, 'depth', 5)
         self.pub_points = self.create_publisher(PointCloud2, 'points2', 5)
-        qos = qos_profile_sensor_data if self._params['input_qos'] == 'sensor_data' else \
-            QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        qos = input_qos_profile(self._params['input_qos'], depth=5)
         self.create_subscription(Image, 'left/image_rect',
                                  lambda m: self._on_image('left', m), qos)
         self.create_subscription(Image, 'right/image_rect',

@@ -1,4 +1,4 @@
-"""ParameterDescriptor builders shared by every node (no rclpy needed, only rcl_interfaces).
+"""ParameterDescriptor builders and input QoS choices shared by every node.
 
 Every node declares each parameter with a description, a range and read-only where it must be;
 these helpers keep those declarations short and identical across packages.
@@ -8,8 +8,10 @@ from __future__ import annotations
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
     ParameterType
+from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 
-__all__ = ['float_descriptor', 'int_descriptor', 'string_descriptor', 'bool_descriptor']
+__all__ = ['float_descriptor', 'int_descriptor', 'string_descriptor', 'bool_descriptor',
+           'INPUT_QOS_CHOICES', 'input_qos_descriptor', 'input_qos_profile']
 
 
 def float_descriptor(description: str, low: float, high: float,
@@ -40,3 +42,29 @@ def bool_descriptor(description: str, read_only: bool = False) -> ParameterDescr
     """A boolean parameter."""
     return ParameterDescriptor(type=ParameterType.PARAMETER_BOOL, description=description,
                                read_only=read_only)
+
+
+INPUT_QOS_CHOICES = ('sensor_data', 'reliable')
+
+
+def input_qos_descriptor(topic: str) -> ParameterDescriptor:
+    """The read-only ``input_qos`` parameter of a node taking large messages on ``topic``."""
+    return ParameterDescriptor(
+        type=ParameterType.PARAMETER_STRING, read_only=True,
+        description=f'QoS of the {topic} subscription: sensor_data (best effort, REP 2003) or '
+                    'reliable (keep last few; lossless for multi-megabyte messages, which '
+                    'best-effort DDS drops whole when one fragment is lost)',
+        additional_constraints='one of ' + ', '.join(INPUT_QOS_CHOICES))
+
+
+def input_qos_profile(choice: str, depth: int = 2) -> QoSProfile:
+    """The subscription QoS of an ``input_qos`` value.
+
+    :raises ValueError: ``choice`` is not one of :data:`INPUT_QOS_CHOICES`.
+    """
+    if choice not in INPUT_QOS_CHOICES:
+        raise ValueError(f'input_qos must be one of {", ".join(INPUT_QOS_CHOICES)}, '
+                         f'got {choice!r}')
+    if choice == 'sensor_data':
+        return qos_profile_sensor_data
+    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)

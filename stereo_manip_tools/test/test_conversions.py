@@ -117,3 +117,15 @@ def test_principal_point_offset_follows_middlebury():
     assert back.doffs == pytest.approx(31.086)
     assert back.depth_from_disparity(np.array([[40.0]]))[0, 0] == pytest.approx(
         994.978 * 0.193001 / 71.086, rel=1e-6)
+
+
+def test_input_qos_choices():
+    from rclpy.qos import qos_profile_sensor_data, ReliabilityPolicy
+
+    from stereo_manip_tools.parameters import input_qos_descriptor, input_qos_profile
+    assert input_qos_profile('sensor_data') == qos_profile_sensor_data
+    reliable = input_qos_profile('reliable', depth=5)
+    assert reliable.reliability == ReliabilityPolicy.RELIABLE and reliable.depth == 5
+    with pytest.raises(ValueError, match='input_qos must be one of'):
+        input_qos_profile('fast')
+    assert input_qos_descriptor('points2').read_only
