@@ -18,12 +18,13 @@ compiles, later processes load the cache).
 
 from __future__ import annotations
 
+import threading
 from typing import Callable, Optional
 
 import numba
 import numpy as np
 
-from stereo_depth.matching_cost import _hamming_row, _reverse_row
+from stereo_depth.matching_cost import _hamming_row, _reverse_row, to_gray
 
 __all__ = [
     'winner_take_all',
@@ -60,16 +61,17 @@ def winner_take_all(cost: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 @numba.njit(inline='always', fastmath=True, boundscheck=False)
-def _path_update(c, prev, pmin, cur, acc, p1, p2):
+def _path_update(c, prev, pmin, cur, acc, p1, p2, init=False):
     # Hirschmueller 2008, Eq. 13: L(p, d) = C(p, d) + min(L(p-r, d), L(p-r, d+-1) + P1,
     # min_k L(p-r, k) + P2) - min_k L(p-r, k). Written branch-free so that LLVM vectorises it.
     # Every sum is cast back to uint16 at once: numba widens small-integer arithmetic to 64
-    # bits, and the casts let LLVM narrow it again to 32 x 16-bit SIMD lanes.
+    # bits, and the casts let LLVM narrow it again to 32 x 16-bit SIMD lanes. init (a constant
+    # at each call site): write the path cost to acc instead of adding it.
     nd = c.shape[0]
     mp = _U16(pmin + p2)
     if nd == 1:
         cur[0] = c[0]
-        acc[0] = _U16(acc[0] + cur[0])
+        acc[0] = cur[0] if init else _U16(acc[0] + cur[0])
         return cur[0]
     v = min(prev[0], _U16(prev[1] + p1), mp)
     cur[0] = _U16(_U16(c[0]) + _U16(v - pmin))
@@ -82,16 +84,16 @@ def _path_update(c, prev, pmin, cur, acc, p1, p2):
     best = cur[0]
     for d in range(nd):
         val = cur[d]
-        acc[d] = _U16(acc[d] + val)
+        acc[d] = val if init else _U16(acc[d] + val)
         best = min(best, val)
     return best
 
 
 @numba.njit(inline='always', fastmath=True, boundscheck=False)
-def _path_start(c, cur, acc):
+def _path_start(c, cur, acc, init=False):
     for d in range(c.shape[0]):
         cur[d] = c[d]
-        acc[d] = _U16(acc[d] + c[d])
+        acc[d] = c[d] if init else _U16(acc[d] + c[d])
     best = cur[0]
     for d in range(c.shape[0]):
         best = min(best, cur[d])
@@ -99,12 +101,14 @@ def _path_start(c, cur, acc):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True, boundscheck=False)
-def _sgm_half(cost, p1, p2, acc, reverse, eight):
+def _sgm_half(cost, p1, p2, acc, reverse, eight, p2map, adaptive):
     # One raster sweep accumulating half of the paths into acc (uint16): the forward sweep
     # (rows top-down) runs the left-to-right path and the paths arriving from the row above
     # (up, and with eight paths up-left and up-right); the reverse sweep mirrors them. Each row
     # is processed direction by direction so that its cost and sum rows stay in cache; the
     # vertical paths keep the previous row's path costs in row buffers.
+    # adaptive: intensity-adaptive P2 (Hirschmueller 2008, Sec. 3.1) from p2map, see
+    # _adaptive_p2_maps.
     h, w, nd = cost.shape
     p1 = _U16(p1)
     p2 = _U16(p2)
@@ -119,14 +123,18 @@ def _sgm_half(cost, p1, p2, acc, reverse, eight):
         crow = cost[y]
         arow = acc[y]
         if reverse:
-            hm = _path_start(crow[w - 1], hbuf[0], arow[w - 1])
+            hm = _path_start(crow[w - 1], hbuf[0], arow[w - 1], True)
             for i in range(1, w):
                 x = w - 1 - i
-                hm = _path_update(crow[x], hbuf[(i - 1) & 1], hm, hbuf[i & 1], arow[x], p1, p2)
+                q2 = p2map[0, y, x + 1] if adaptive else p2
+                hm = _path_update(crow[x], hbuf[(i - 1) & 1], hm, hbuf[i & 1], arow[x], p1,
+                                  q2, True)
         else:
-            hm = _path_start(crow[0], hbuf[0], arow[0])
+            hm = _path_start(crow[0], hbuf[0], arow[0], True)
             for x in range(1, w):
-                hm = _path_update(crow[x], hbuf[(x - 1) & 1], hm, hbuf[x & 1], arow[x], p1, p2)
+                q2 = p2map[0, y, x] if adaptive else p2
+                hm = _path_update(crow[x], hbuf[(x - 1) & 1], hm, hbuf[x & 1], arow[x], p1,
+                                  q2, True)
         for k in range(ndir):
             pk = prev[k]
             ck = cur[k]
@@ -150,20 +158,43 @@ def _sgm_half(cost, p1, p2, acc, reverse, eight):
             elif off == 1:
                 cmk[w - 1] = _path_start(crow[w - 1], ck[w - 1], arow[w - 1])
                 x1 = w - 1
+            py = y + 1 if reverse else y - 1
             for x in range(x0, x1):
-                cmk[x] = _path_update(crow[x], pk[x + off], pmk[x + off], ck[x], arow[x], p1, p2)
+                if adaptive:
+                    q2 = p2map[k + 1, py, x + off] if reverse else p2map[k + 1, y, x]
+                else:
+                    q2 = p2
+                cmk[x] = _path_update(crow[x], pk[x + off], pmk[x + off], ck[x], arow[x], p1, q2)
         prev, cur = cur, prev
         pmin, cmin = cmin, pmin
     return acc
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _sgm_both(cost, p1, p2, eight):
-    h, w, nd = cost.shape
-    accs = np.zeros((2, h, w, nd), np.uint16)
+def _sgm_both(cost, p1, p2, eight, p2map, adaptive, accs):
+    # accs: (2, H, W, D) uint16 output, any content: each sweep's first path (the horizontal
+    # one) writes acc, the others add to it.
     for i in numba.prange(2):
-        _sgm_half(cost, p1, p2, accs[i], i == 1, eight)
+        _sgm_half(cost, p1, p2, accs[i], i == 1, eight, p2map, adaptive)
     return accs
+
+
+_SCRATCH = threading.local()
+
+
+def _path_sum_buffers(shape: tuple) -> np.ndarray:
+    """(2, H, W, D) uint16 scratch for the two sweeps' path sums, kept per thread.
+
+    The buffers are tens of MB: allocating them per frame costs a page fault per 4 KiB page
+    (several ms per frame), so each thread keeps its last one for the next frame of the same
+    size. Only for results that do not escape (sgm_disparities).
+    """
+    buf = getattr(_SCRATCH, 'accs', None)
+    if buf is None or buf.shape != (2,) + tuple(shape):
+        _SCRATCH.accs = None     # release the old one first
+        buf = np.empty((2,) + tuple(shape), np.uint16)
+        _SCRATCH.accs = buf
+    return buf
 
 
 def _check_sgm_args(cost, p1, p2, paths):
@@ -181,18 +212,69 @@ def _check_sgm_args(cost, p1, p2, paths):
     return np.ascontiguousarray(cost)
 
 
-def semi_global_matching(cost: np.ndarray, p1: int = 7, p2: int = 100,
-                         paths: int = 8) -> np.ndarray:
+# Path step types of the P2 maps: the step from (y - dy, x - dx) to (y, x) of type t uses
+# p2map[t, y, x]; the opposite step uses p2map[t, y - dy, x - dx]. The kernel's vertical
+# buffers k = 0, 1, 2 are the types 1, 2, 3.
+_P2_STEPS = ((0, 1), (1, 0), (1, 1), (1, -1))
+
+
+def _adaptive_p2_maps(cost, image, p1, p2, gamma, paths=8):
+    """(4, H, W) uint16 P2 per path step (see _P2_STEPS), or a dummy when gamma == 0.
+
+    With 4 paths only the horizontal and vertical maps (types 0 and 1) are filled.
+
+    The step between neighbours q and p costs ``max(P1, P2 * gamma / (gamma + |I(p) - I(q)|))``
+    for a larger disparity jump (Hirschmueller 2008, Sec. 3.1): an intensity edge is where a
+    depth edge is likely, so a jump there is cheaper; in uniform regions the full P2 keeps the
+    surface smooth.
+    """
+    if gamma < 0:
+        raise ValueError(f'adaptive P2 gamma must be >= 0 (0 = constant P2), got {gamma}')
+    if gamma == 0:
+        return np.zeros((4, 1, 1), np.uint16)
+    if image is None:
+        raise ValueError('adaptive P2 (gamma > 0) needs the left image')
+    img = to_gray(image)
+    h, w = cost.shape[:2]
+    if img.shape != (h, w):
+        raise ValueError(f'image {img.shape} does not match the cost volume {(h, w)}')
+    maps = np.empty((4 if paths == 8 else 2, h, w), np.uint16)
+    g = np.float32(gamma)
+    for t, (dy, dx) in enumerate(_P2_STEPS[:maps.shape[0]]):
+        # pixels without a predecessor of this type (first row / column) keep P2
+        maps[t, :dy, :] = p2
+        if dx > 0:
+            maps[t, :, :dx] = p2
+        elif dx < 0:
+            maps[t, :, w + dx:] = p2
+        ys = slice(dy, h)
+        xs = slice(dx, w) if dx >= 0 else slice(0, w + dx)
+        qs = slice(0, w - dx) if dx >= 0 else slice(-dx, w)
+        di = np.abs(img[ys, xs] - img[0:h - dy, qs])
+        q = np.maximum(np.float32(p1), np.float32(p2) * g / (g + di))
+        maps[t, ys, xs] = np.rint(q).astype(np.uint16)
+    return maps
+
+
+def semi_global_matching(cost: np.ndarray, p1: int = 7, p2: int = 100, paths: int = 8,
+                         image: Optional[np.ndarray] = None,
+                         gamma: float = 0.0) -> np.ndarray:
     """Aggregate a cost volume along 4 or 8 directions (semi-global matching).
 
     :param cost: (H, W, D) uint8 cost volume.
     :param p1: penalty for a disparity change of one pixel between neighbours.
     :param p2: penalty for larger changes (P2 >= P1).
     :param paths: 4 (horizontal + vertical) or 8 (plus diagonals).
+    :param image: the left image (H, W) or (H, W, 3); needed only when ``gamma > 0``.
+    :param gamma: intensity-adaptive P2 (Hirschmueller 2008, Sec. 3.1): the step from pixel
+        q to p along a path uses ``max(P1, P2 * gamma / (gamma + |I(p) - I(q)|))`` (intensity
+        units of 0..255), so depth jumps are cheaper at intensity edges; 0 keeps P2 constant.
     :return: (H, W, D) uint16 summed path costs ``S``; ``argmin_d S`` is the SGM disparity.
     """
     cost = _check_sgm_args(cost, p1, p2, paths)
-    accs = _sgm_both(cost, int(p1), int(p2), paths == 8)
+    maps = _adaptive_p2_maps(cost, image, int(p1), int(p2), float(gamma), paths)
+    accs = _sgm_both(cost, int(p1), int(p2), paths == 8, maps, gamma > 0,
+                     np.empty((2,) + cost.shape, np.uint16))
     return accs[0] + accs[1]
 
 
@@ -312,7 +394,8 @@ def winner_take_all_both(cost: np.ndarray,
 
 
 def sgm_disparities(cost: np.ndarray, p1: int = 7, p2: int = 100, paths: int = 8,
-                    uniqueness: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                    uniqueness: float = 0.0, image: Optional[np.ndarray] = None,
+                    gamma: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """SGM followed by winner-take-all for both views, fused for speed.
 
     :param cost: (H, W, D) uint8 cost volume of the left view.
@@ -321,6 +404,8 @@ def sgm_disparities(cost: np.ndarray, p1: int = 7, p2: int = 100, paths: int = 8
     :param paths: 4 or 8.
     :param uniqueness: reject a pixel (NaN) whose best sum is not lower than ``1 + uniqueness``
         times the best sum outside ``best +- 1``; 0 disables the test.
+    :param image: the left image, needed only when ``gamma > 0``.
+    :param gamma: intensity-adaptive P2, see :func:`semi_global_matching`; 0 = constant P2.
     :return: ``(disp_left, disp_right)``, (H, W) float32 in pixels: the left disparity with
         parabola subpixel refinement (NaN where not unique), and the integer right-view
         disparity (``x_left = x_right + d``) for the left-right check.
@@ -328,7 +413,9 @@ def sgm_disparities(cost: np.ndarray, p1: int = 7, p2: int = 100, paths: int = 8
     cost = _check_sgm_args(cost, p1, p2, paths)
     if uniqueness < 0:
         raise ValueError(f'uniqueness must be >= 0, got {uniqueness}')
-    accs = _sgm_both(cost, int(p1), int(p2), paths == 8)
+    maps = _adaptive_p2_maps(cost, image, int(p1), int(p2), float(gamma), paths)
+    accs = _sgm_both(cost, int(p1), int(p2), paths == 8, maps, gamma > 0,
+                     _path_sum_buffers(cost.shape))
     return _wta_two(accs[0], accs[1], float(uniqueness))
 
 

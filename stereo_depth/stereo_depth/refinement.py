@@ -149,15 +149,27 @@ def remove_speckles(disparity: np.ndarray, max_size: int = 100,
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _nan_median(d, r):
+def _nan_median(d, r, full, use_full):
+    # full: the plain median of every complete window (OpenCV), used where the whole window
+    # lies inside the image and holds no NaN; other pixels take the median of their valid
+    # neighbours by insertion sort.
     h, w = d.shape
     out = np.empty_like(d)
     for y in numba.prange(h):
         buf = np.empty((2 * r + 1) * (2 * r + 1), np.float32)
+        inner_y = r <= y < h - r
         for x in range(w):
             if np.isnan(d[y, x]):
                 out[y, x] = np.nan
                 continue
+            if use_full and inner_y and r <= x < w - r:
+                s = np.float32(0.0)
+                for yy in range(y - r, y + r + 1):
+                    for xx in range(x - r, x + r + 1):
+                        s += d[yy, xx]
+                if not np.isnan(s):     # NaN propagates through the sum
+                    out[y, x] = full[y, x]
+                    continue
             n = 0
             for yy in range(max(0, y - r), min(h, y + r + 1)):
                 for xx in range(max(0, x - r), min(w, x + r + 1)):
@@ -187,7 +199,12 @@ def median_filter(disparity: np.ndarray, size: int = 3) -> np.ndarray:
         raise ValueError(f'median size must be odd and >= 1, got {size}')
     if size == 1:
         return d.copy()
-    return _nan_median(d, size // 2)
+    if size <= 5:
+        import cv2
+
+        full = cv2.medianBlur(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0), size)
+        return _nan_median(d, size // 2, full, True)
+    return _nan_median(d, size // 2, d, False)     # OpenCV's float median stops at 5x5
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
@@ -217,17 +234,79 @@ def _fill_rows(d):
     return out
 
 
-def fill_invalid(disparity: np.ndarray) -> np.ndarray:
-    """Fill each horizontal run of missing pixels with the background disparity.
+_DIRECTIONS8 = np.array([[0, 1], [0, -1], [1, 0], [-1, 0], [1, 1], [1, -1], [-1, 1], [-1, -1]],
+                        np.int64)
 
-    An occluded or rejected run in a row lies next to a farther surface, so it takes the
-    smaller of the two valid disparities that bound it (the only one at the image border).
-    Rows without any estimate stay NaN.
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _fill_directional(d, dirs, rank):
+    # Each missing pixel takes the rank-th smallest (0 = the smallest, i.e. the background) of
+    # the nearest valid values along every direction. The nearest valid value along direction
+    # (dy, dx) follows the recursion near(p) = d(p + r) if valid else near(p + r), one sweep
+    # per direction (rows and columns visited so that p + r comes first): O(8 H W) in all.
+    h, w = d.shape
+    nd = dirs.shape[0]
+    near = np.empty((nd, h, w), np.float32)
+    for k in numba.prange(nd):
+        dy = dirs[k, 0]
+        dx = dirs[k, 1]
+        for i in range(h):
+            y = h - 1 - i if dy > 0 else i
+            for j in range(w):
+                x = w - 1 - j if dx > 0 else j
+                ny = y + dy
+                nx = x + dx
+                if 0 <= ny < h and 0 <= nx < w:
+                    v = d[ny, nx]
+                    near[k, y, x] = near[k, ny, nx] if np.isnan(v) else v
+                else:
+                    near[k, y, x] = np.nan
+    out = d.copy()
+    for y in numba.prange(h):
+        vals = np.empty(nd, np.float32)
+        for x in range(w):
+            if not np.isnan(d[y, x]):
+                continue
+            n = 0
+            for k in range(nd):
+                v = near[k, y, x]
+                if not np.isnan(v):
+                    j = n
+                    while j > 0 and vals[j - 1] > v:
+                        vals[j] = vals[j - 1]
+                        j -= 1
+                    vals[j] = v
+                    n += 1
+            if n > 0:
+                out[y, x] = vals[min(rank, n - 1)]
+    return out
+
+
+def fill_invalid(disparity: np.ndarray, mode: str = 'row', rank: int = 2) -> np.ndarray:
+    """Fill missing pixels with the background disparity.
+
+    ``mode='row'``: each horizontal run of missing pixels lies next to a farther surface, so
+    it takes the smaller of the two valid disparities that bound it (the only one at the image
+    border); rows without any estimate stay NaN.
+    ``mode='directional'``: each missing pixel collects the nearest valid disparity along 8
+    directions (Hirschmueller 2008, Sec. 3.5) and takes the ``rank``-th smallest of them
+    (0 = the smallest): a low rank picks the background, as an occluded pixel needs, and a
+    rank above 0 is robust to stray low values next to mismatched regions. Only an image
+    without any estimate stays NaN.
 
     :param disparity: (H, W) disparities (pixels, NaN = none).
+    :param mode: 'row' or 'directional'.
+    :param rank: for 'directional': which of the (up to 8) sorted values to take; if fewer are
+        found, the largest of them.
     :return: (H, W) float32 dense disparities.
     """
     d = np.asarray(disparity, dtype=np.float32)
     if d.ndim != 2:
         raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
-    return _fill_rows(d)
+    if mode == 'row':
+        return _fill_rows(d)
+    if mode == 'directional':
+        if rank < 0:
+            raise ValueError(f'fill rank must be >= 0, got {rank}')
+        return _fill_directional(d, _DIRECTIONS8, int(rank))
+    raise ValueError(f"fill mode must be 'row' or 'directional', got '{mode}'")

@@ -171,7 +171,7 @@ _PARAMS = {
         float_range=(0.5, 3600.0), read_only=True)),
     'p1': (10, _descriptor('SGM penalty of a 1-pixel disparity change (sgm, sgm4)',
                            ParameterType.PARAMETER_INTEGER, int_range=(0, 1000))),
-    'p2': (60, _descriptor('SGM penalty of larger disparity changes, >= p1 (sgm, sgm4)',
+    'p2': (90, _descriptor('SGM penalty of larger disparity changes, >= p1 (sgm, sgm4)',
                            ParameterType.PARAMETER_INTEGER, int_range=(0, 4000))),
     'block_size': (5, _descriptor('OpenCV block size (opencv_bm needs odd >= 5, '
                                   'opencv_sgbm odd >= 1)',

@@ -129,8 +129,10 @@ def test_box_sum_matches_opencv_and_brute_force():
 
 # --- step 3: optimisation -------------------------------------------------------------------
 
-def _sgm_reference(cost, p1, p2, directions):
-    """Plain-python SGM path sums (Hirschmueller 2008, Eq. 13)."""
+def _sgm_reference(cost, p1, p2, directions, image=None, gamma=0.0):
+    """Plain-python SGM path sums (Hirschmueller 2008, Eq. 13); with ``gamma`` > 0 the large-jump
+    penalty of the step q -> p is max(P1, P2 gamma / (gamma + |I(p) - I(q)|)), rounded (Sec. 3.1).
+    """
     h, w, nd = cost.shape
     c = cost.astype(np.int64)
     total = np.zeros_like(c)
@@ -144,8 +146,12 @@ def _sgm_reference(cost, p1, p2, directions):
                 if 0 <= py < h and 0 <= px < w and (dy, dx) != (0, 0):
                     prev = L[py, px]
                     m = prev.min()
+                    big = p2
+                    if gamma > 0:
+                        di = abs(float(image[y, x]) - float(image[py, px]))
+                        big = int(np.rint(max(p1, p2 * gamma / (gamma + di))))
                     for d in range(nd):
-                        cand = [prev[d], m + p2]
+                        cand = [prev[d], m + big]
                         if d > 0:
                             cand.append(prev[d - 1] + p1)
                         if d < nd - 1:
@@ -165,6 +171,33 @@ def test_sgm_equals_reference_recursion(paths):
     dirs8 = dirs4 + [(1, 1), (1, -1), (-1, 1), (-1, -1)]
     ref = _sgm_reference(cost, 3, 20, dirs8 if paths == 8 else dirs4)
     np.testing.assert_array_equal(semi_global_matching(cost, 3, 20, paths), ref)
+
+
+@pytest.mark.parametrize('paths', [4, 8])
+def test_intensity_adaptive_p2_equals_reference_recursion(paths):
+    rng = np.random.default_rng(5)
+    cost = rng.integers(0, 40, (7, 9, 6)).astype(np.uint8)
+    image = rng.integers(0, 256, (7, 9)).astype(np.float32)
+    dirs4 = [(0, 1), (0, -1), (1, 0), (-1, 0)]
+    dirs8 = dirs4 + [(1, 1), (1, -1), (-1, 1), (-1, -1)]
+    ref = _sgm_reference(cost, 3, 20, dirs8 if paths == 8 else dirs4, image, 30.0)
+    got = semi_global_matching(cost, 3, 20, paths, image=image, gamma=30.0)
+    np.testing.assert_array_equal(got, ref)
+    assert not np.array_equal(got, semi_global_matching(cost, 3, 20, paths))
+
+
+def test_directional_fill_takes_the_background_rank():
+    d = np.full((9, 9), 10.0, np.float32)
+    d[:, 5:] = 30.0                      # a near surface on the right
+    d[3:6, 3:6] = np.nan                 # a hole touching both
+    filled = fill_invalid(d, mode='directional', rank=0)
+    assert np.all(np.isfinite(filled))
+    assert np.all(filled[3:6, 3:6] == 10.0)    # rank 0: the farther (smaller) disparity
+    ranked = fill_invalid(d, mode='directional', rank=7)
+    assert ranked[4, 4] == 30.0                # highest rank: the near one is among the 8
+    np.testing.assert_array_equal(filled[np.isfinite(d)], d[np.isfinite(d)])
+    with pytest.raises(ValueError, match='rank'):
+        fill_invalid(d, mode='directional', rank=-1)
 
 
 def test_sgm_fronto_parallel_plane_gives_constant_disparity():
