@@ -14,7 +14,7 @@ from stereo_manip_msgs.srv import CorrectTrajectory
 from contact_correction.contact_correction_node import ContactCorrectionNode
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_to_matrix
-from stereo_manip_tools.testing import spin_until, start_executable
+from stereo_manip_tools.testing import call_service, spin_until, start_executable
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 STATIC = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
@@ -94,12 +94,8 @@ def test_far_pose_and_parameters(ros_node, corrector):
 
 
 def _call(node, server_node, request, timeout=30.0):
-    client = node.create_client(CorrectTrajectory, 'correct_trajectory')
     nodes = [node] + ([server_node] if server_node is not None else [])
-    assert _spin_both(nodes, lambda: client.service_is_ready(), timeout)
-    future = client.call_async(request)
-    assert _spin_both(nodes, future.done, timeout)
-    return future.result()
+    return call_service(nodes, CorrectTrajectory, 'correct_trajectory', request, timeout)
 
 
 @pytest.mark.ros

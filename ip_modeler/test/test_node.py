@@ -18,7 +18,7 @@ from ip_modeler.ip_modeler_node import IpModelerNode
 from ip_modeler.monomials import monomial_count
 from ip_modeler.shapes import sample_shape
 from stereo_manip_tools.conversions import xyz_to_pointcloud2
-from stereo_manip_tools.testing import spin_until, start_executable
+from stereo_manip_tools.testing import call_service, spin_until, start_executable
 
 SIZE = 0.08
 CENTRE = np.array([0.05, -0.02, 0.5])  # object 0.5 m in front of the camera
@@ -120,12 +120,8 @@ def test_parameters_are_validated(modeler):
 
 
 def _call(node, server, request, timeout=30.0):
-    client = node.create_client(FitImplicitPolynomial, 'fit_implicit_polynomial')
     nodes = [node] + ([server] if server is not None else [])
-    assert _spin_both(nodes, lambda: client.service_is_ready(), timeout)
-    future = client.call_async(request)
-    assert _spin_both(nodes, future.done, timeout)
-    return future.result()
+    return call_service(nodes, FitImplicitPolynomial, 'fit_implicit_polynomial', request, timeout)
 
 
 @pytest.mark.ros

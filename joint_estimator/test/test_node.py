@@ -15,7 +15,7 @@ from joint_estimator.joint_estimator_node import JointEstimatorNode
 from joint_estimator.synthetic import add_noise, random_joint_motion
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_to_matrix
-from stereo_manip_tools.testing import spin_until, start_executable
+from stereo_manip_tools.testing import call_service, spin_until, start_executable
 
 SP, SR = 0.001, np.deg2rad(1.0)
 
@@ -151,12 +151,8 @@ def test_parameters_are_validated(estimator):
 
 
 def _call(node, server_node, request, timeout=20.0):
-    client = node.create_client(EstimateJoint, 'estimate_joint')
     nodes = [node] + ([server_node] if server_node is not None else [])
-    assert _spin_both(nodes, lambda: client.service_is_ready(), timeout)
-    future = client.call_async(request)
-    assert _spin_both(nodes, future.done, timeout)
-    return future.result()
+    return call_service(nodes, EstimateJoint, 'estimate_joint', request, timeout)
 
 
 @pytest.mark.ros

@@ -26,6 +26,7 @@ __all__ = [
     'shutdown_node',
     'spin_until',
     'wait_for_message',
+    'call_service',
     'collect_messages',
     'executable_path',
     'ExecutableProcess',
@@ -54,6 +55,22 @@ def collect_messages(node: Node, msg_type: Any, topic: str, count: int, timeout:
     finally:
         node.destroy_subscription(sub)
     return received[:count]
+
+
+def call_service(nodes: Any, srv_type: Any, name: str, request: Any,
+                 timeout: float = 30.0) -> Any:
+    """Call service ``name`` from the first of ``nodes`` (spinning all of them, so an in-process
+    server can answer) and return the response; fails the test if the service does not come up
+    or answer within ``timeout`` [s]."""
+    group = [nodes] if isinstance(nodes, Node) else list(nodes)
+    client = group[0].create_client(srv_type, name)
+    try:
+        assert spin_until(group, client.service_is_ready, timeout), f'{name} not available'
+        future = client.call_async(request)
+        assert spin_until(group, future.done, timeout), f'{name} did not answer in {timeout} s'
+        return future.result()
+    finally:
+        group[0].destroy_client(client)
 
 
 def wait_for_message(node: Node, msg_type: Any, topic: str, timeout: float = 10.0,
