@@ -16,7 +16,9 @@ done
   || { say "Python 3.11 is required ($PY is $("$PY" --version 2>&1))"; exit 1; }
 
 # Open3D's wheel links libusb-1.0.so.0, which a bare Debian/Ubuntu image lacks.
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+# (grep reads all of ldconfig's output: with -q it could exit first and, under pipefail, the
+# SIGPIPE of ldconfig would read as 'missing')
+if ! ldconfig -p 2>/dev/null | grep -c 'libusb-1.0.so.0' >/dev/null; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     say 'installing the system library libusb-1.0-0 (needed by open3d)'
     apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null
