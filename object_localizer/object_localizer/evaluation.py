@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
+from object_localizer.localization import facing_sensor, sample_surface
 from stereo_manip_tools.mesh_io import PolygonMesh
 from stereo_manip_tools.transforms import transform_points
 
@@ -30,11 +30,7 @@ def sample_visible_surface(mesh: PolygonMesh, pose: np.ndarray, count: int,
                            seed: int = 0) -> np.ndarray:
     """Uniform surface samples of ``mesh`` placed at ``pose`` (model -> sensor) whose faces face
     a sensor at the origin; (M, 3) [m], M <= count. Self-occlusion is not modelled."""
-    tm = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
-                                   o3d.utility.Vector3iVector(mesh.triangles()))
-    tm.compute_triangle_normals()
-    o3d.utility.random.seed(int(seed))
-    pcd = tm.sample_points_uniformly(count, use_triangle_normal=True)
+    pcd = sample_surface(mesh, count, seed)
     P = transform_points(pose, np.asarray(pcd.points))
     N = np.asarray(pcd.normals) @ np.asarray(pose)[:3, :3].T
-    return P[np.einsum('ij,ij->i', N, -P) > 0]
+    return P[facing_sensor(P, N)]

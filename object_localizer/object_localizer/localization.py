@@ -23,6 +23,8 @@ from stereo_manip_tools.mesh_io import PolygonMesh
 __all__ = [
     'ModelTemplate',
     'LocalizationResult',
+    'sample_surface',
+    'facing_sensor',
     'prepare_model',
     'prepare_scene',
     'remove_dominant_plane',
@@ -74,17 +76,28 @@ def _features(cloud: o3d.geometry.PointCloud, voxel: float) -> o3d.pipelines.reg
         cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
 
 
+def sample_surface(mesh: PolygonMesh, count: int, seed: int = 0) -> o3d.geometry.PointCloud:
+    """``count`` uniform samples of the mesh surface with their outward face normals, in the
+    model frame [m]; seeded (``o3d.utility.random.seed``) so the samples repeat."""
+    tm = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                   o3d.utility.Vector3iVector(mesh.triangles()))
+    tm.compute_triangle_normals()
+    o3d.utility.random.seed(int(seed))
+    return tm.sample_points_uniformly(number_of_points=count, use_triangle_normal=True)
+
+
+def facing_sensor(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Mask (N,) of the points (N, 3) [m, sensor frame] whose normals face a sensor at the
+    origin: the surface stereo can see, self-occlusion aside."""
+    return np.einsum('ij,ij->i', normals, -points) > 0
+
+
 def prepare_model(mesh: PolygonMesh, voxel_size: float = 0.003, samples: int = 20000,
                   seed: int = 0) -> ModelTemplate:
     """Sample a model's surface uniformly and compute FPFH features at ``voxel_size`` [m]."""
     if voxel_size <= 0:
         raise ValueError(f'voxel_size must be > 0, got {voxel_size}')
-    tm = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
-                                   o3d.utility.Vector3iVector(mesh.triangles()))
-    tm.compute_triangle_normals()
-    o3d.utility.random.seed(seed)
-    pcd = tm.sample_points_uniformly(number_of_points=samples, use_triangle_normal=True)
-    pcd = pcd.voxel_down_sample(voxel_size)
+    pcd = sample_surface(mesh, samples, seed).voxel_down_sample(voxel_size)
     return ModelTemplate(mesh.name, np.asarray(pcd.points).copy(), np.asarray(pcd.normals).copy(),
                          voxel_size, pcd, _features(pcd, voxel_size))
 
@@ -149,7 +162,7 @@ def _visible_model(model: ModelTemplate, pose: np.ndarray) -> o3d.geometry.Point
     R, t = pose[:3, :3], pose[:3, 3]
     P = model.points @ R.T + t
     N = model.normals @ R.T
-    keep = np.einsum('ij,ij->i', N, -P) > 0
+    keep = facing_sensor(P, N)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.points[keep]))
     pcd.normals = o3d.utility.Vector3dVector(model.normals[keep])
     return pcd
