@@ -294,7 +294,7 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
                             stability_tol: float = 1e-6, ridge: float = 1e-6,
                             min_improvement: float = 0.05,
                             patience: int = 3, viewpoint: Optional[np.ndarray] = None,
-                            variant: str = 'classical', sheet_check: bool = True,
+                            variant: str = 'arnoldi', sheet_check: bool = True,
                             max_sheet_ridge: float = 1e-4,
                             sheet_check_resolution: int = 64) -> FitResult:
     """Adaptive-degree 3L implicit-polynomial fit by incremental QR (Section 5, Eqs. 19-22).
@@ -316,7 +316,9 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
     :param min_improvement: a degree must lower the RMS by this fraction to count as progress.
     :param patience: stop after this many consecutive degrees without progress.
     :param viewpoint: sensor position [m] for orienting estimated normals.
-    :param variant: ``'classical'`` or ``'modified'`` block Gram-Schmidt.
+    :param variant: ``'arnoldi'`` (columns ``x * q_parent``, one pass), ``'classical'``
+        (BCGS2 on the monomials) or ``'modified'`` (BMGS2); see
+        :mod:`ip_modeler.incremental_qr`. All give the same factorisation ``M = QR``.
     :param sheet_check: after each degree's solve, look for spurious zero-set sheets (pieces
         of the zero set inside the input's bounding box grown 10 % that never come within
         10 % of its largest side of an input point) and, while there are any, raise the
@@ -348,7 +350,8 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
         max_degree -= 1
         data_cap = f' (capped by {N} points)'
     qr = IncrementalQR(b, stabilization=stabilization, stability_tol=stability_tol,
-                       variant=variant, capacity=monomial_count(max_degree))
+                       variant=variant, capacity=monomial_count(max_degree),
+                       points=X if variant == 'arnoldi' else None)
     M_all = monomial_matrix(X, max_degree)  # rows 0..N-1 are the data points themselves
     G_data = monomial_gradient_matrices(None, max_degree, M=M_all[:N])
     result = FitResult(model=None)  # type: ignore[arg-type]

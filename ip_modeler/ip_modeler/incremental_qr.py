@@ -6,14 +6,30 @@ one block of columns; Gram-Schmidt works from left to right, so every column of 
 already computed is reused and only the new block is orthogonalised (the shaded part of
 Fig. 14).
 
-Default (``variant='classical'``): BCGS2 (Barlow & Smoktunowicz 2013) in BLAS-3 calls only -
-project the block off Q, factorise it locally (Cholesky QR, or Householder near the stability
-thresholds), project again, Cholesky QR of the nearly orthonormal result; the block is copied
-once into Q's preallocated Fortran-order columns and worked on in place. Every column gets the
-second pass: with monomials each new column keeps far less than 1/sqrt(2) of its norm off the
-old span (the DGKS test asks for the second pass on all of them), so selective
-re-orthogonalisation saves nothing here. Ill-conditioned blocks fall back to the column-wise
-path below.
+``variant='arnoldi'`` (the fitter's default; monomial columns of given points): columns are not
+orthogonalised as the raw monomials but as ``x_axis * q_parent`` - the previous degree's
+orthonormal column of the monomial ``m_j / x_axis`` times one coordinate, as in Vandermonde with
+Arnoldi (Brubeck, Nakatsukasa & Trefethen 2021). Together with the old columns they span the
+same polynomials, and because graded_lex is a monomial order, the monomial coefficients ``T``
+of Q's columns (``Q = M T``) stay upper triangular: ``R = T^-1``, the same factorisation as
+Gram-Schmidt on the monomials (``a = T Q^T b`` is the back substitution of ``R a = Q^T b``). The
+gain is conditioning: a monomial keeps below 1e-3 of its norm off the old span, a candidate
+``x q_p`` 0.2-0.8 (benchmark shapes), so one block pass is accurate where monomials need two.
+And ``<x q_p, q_i> = <q_p, x q_i> = 0`` for every ``q_i`` of degree ``<= d - 3`` (``x q_i``
+has degree ``<= d - 2``), so that pass projects on the two previous degrees only. The loss of
+orthogonality left against all old columns is estimated with a 4-column Gaussian sketch
+(randomised Gram-Schmidt, Balabanov & Grigori 2022) and a second, full pass made when it
+exceeds ``orthogonality_tol`` (1e-10). Columns are dropped exactly as in the monomial variants
+(same ``|r_jj|`` tests); a candidate that would carry a dropped monomial is replaced by the raw
+monomial, so dropped coefficients stay 0.
+
+``variant='classical'``: BCGS2 (Barlow & Smoktunowicz 2013) on the monomial columns in BLAS-3
+calls only - project the block off Q, factorise it locally (Cholesky QR, or Householder near
+the stability thresholds), project again, Cholesky QR of the nearly orthonormal result; the
+block is copied once into Q's preallocated Fortran-order columns and worked on in place. Every
+column gets the second pass: each new monomial keeps far less than 1/sqrt(2) of its norm off
+the old span (the DGKS test asks for the second pass on all of them). Ill-conditioned blocks
+fall back to the column-wise path below.
 
 Column-wise path (``variant='modified'`` and the fallback): the new block is orthogonalised by
 block Gram-Schmidt with re-orthogonalisation: the previous
@@ -36,16 +52,25 @@ dropped.
 from __future__ import annotations
 
 import math
-from typing import List, Optional
+from typing import Dict, List, Optional
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, qr, solve_triangular
 from scipy.linalg.blas import dgemm, dsyrk, dtrsm
-from scipy.linalg.lapack import dpotrf
+from scipy.linalg.lapack import dpotrf, dtrcon
 
-__all__ = ['IncrementalQR', 'STABILIZATION_MODES']
+from ip_modeler.monomials import degree_slice, monomial_count, monomial_shift_indices
+
+__all__ = ['IncrementalQR', 'STABILIZATION_MODES', 'VARIANTS']
 
 STABILIZATION_MODES = ('drop', 'ridge', 'none')
+VARIANTS = ('arnoldi', 'classical', 'modified')
+# Column-wise paths: second projection pass when a column keeps less than this fraction of its
+# norm (the Daniel-Gragg-Kaufman-Stewart criterion).
+DGKS_REORTH_THRESHOLD = 0.7071
+_EPS = float(np.finfo(float).eps)
+# Columns of the Gaussian sketch that estimates the loss of orthogonality ('arnoldi').
+_SKETCH = 4
 
 # A column whose orthogonal part is below this fraction of its norm is rounding noise: it is
 # always dropped, whatever the stabilisation mode.
@@ -66,24 +91,51 @@ class IncrementalQR:
         columns dropped).
     :param stability_tol: a column is unstable when ``|r_jj|`` is below this times the largest
         column norm seen so far.
-    :param variant: ``'classical'`` projects the new block on all previous columns in one
-        product per pass (BCGS2, fastest); ``'modified'`` projects on the previous blocks one
-        after another (BMGS2). With the second pass both are equally stable (Giraud, Langou &
-        Rozloznik 2005).
-    :param reorth_threshold: a second projection pass is made for a column whose norm falls
-        below this fraction in the first pass (1.0: always twice; 0.0: never).
+    :param variant: for any columns, ``'classical'`` projects the new block on all previous
+        columns in one product per pass (BCGS2) and ``'modified'`` on the previous blocks one
+        after another (BMGS2); with the second pass both are equally stable (Giraud, Langou &
+        Rozloznik 2005). For graded_lex monomial columns of ``points``, ``'arnoldi'`` builds
+        the same factorisation from the candidates ``x_axis * q_parent`` in one pass (fastest;
+        blocks must then be whole degrees, the first one starting at degree 0).
+    :param reorth_threshold: column-wise paths: a second projection pass is made for a column
+        whose norm falls below this fraction in the first pass (1.0: always twice; 0.0: never).
     :param capacity: initial column capacity (grown as needed).
+    :param points: ``'arnoldi'`` only: the (N, 3) points whose monomials are the columns
+        (``monomial_matrix(points, degree)``); the appended blocks are used for their column
+        norms and as raw columns where a candidate cannot be formed.
+    :param orthogonality_tol: ``'arnoldi'`` only: a block gets the second pass when its
+        estimated loss of orthogonality against the old columns exceeds this.
     """
 
     def __init__(self, b: np.ndarray, stabilization: str = 'drop', stability_tol: float = 1e-6,
-                 variant: str = 'classical', reorth_threshold: float = 0.7071,
-                 capacity: int = 32) -> None:
-        if variant not in ('classical', 'modified'):
-            raise ValueError(f"variant must be 'classical' or 'modified', got {variant!r}")
+                 variant: str = 'classical', reorth_threshold: float = DGKS_REORTH_THRESHOLD,
+                 capacity: int = 32, points: Optional[np.ndarray] = None,
+                 orthogonality_tol: float = 1e-10) -> None:
+        if variant not in VARIANTS:
+            raise ValueError(f'variant must be one of {VARIANTS}, got {variant!r}')
         self.variant = variant
         if not 0.0 <= reorth_threshold <= 1.0:
             raise ValueError(f'reorth_threshold must be in [0, 1], got {reorth_threshold}')
         self.reorth_threshold = float(reorth_threshold)
+        if not 0.0 < orthogonality_tol < 1e-3:
+            raise ValueError(f'orthogonality_tol must be in (0, 1e-3), got {orthogonality_tol}')
+        self.orthogonality_tol = float(orthogonality_tol)
+        # 'arnoldi': largest estimated loss of orthogonality of a block after its first pass
+        self.orthogonality_loss_estimate = 0.0
+        self._sketch_rng = np.random.default_rng(0)
+        self._X: Optional[np.ndarray] = None
+        if variant == 'arnoldi':
+            if points is None:
+                raise ValueError("variant 'arnoldi' needs the points whose monomials are the "
+                                 'columns (points=..., shape (N, 3))')
+            X = np.asarray(points, dtype=float)
+            if X.ndim != 2 or X.shape[1] != 3 or X.shape[0] != np.size(b):
+                raise ValueError(f'points must have shape ({np.size(b)}, 3), got {X.shape}')
+            if not np.all(np.isfinite(X)):
+                raise ValueError('points contain NaN or infinite values')
+            self._X = np.asfortranarray(X)
+        elif points is not None:
+            raise ValueError("points are only used by variant 'arnoldi'")
         self.reorthogonalised = 0  # columns that needed the second projection pass
         if stabilization not in STABILIZATION_MODES:
             raise ValueError(f'stabilization must be one of {STABILIZATION_MODES}, '
@@ -97,7 +149,12 @@ class IncrementalQR:
         self._Q = np.empty((self.n_rows, max(1, capacity)), order='F')
         self._R = np.zeros((max(1, capacity), max(1, capacity)))
         self._qtb = np.zeros(max(1, capacity))
+        # Arnoldi variant: T[i, p] is the coefficient of monomial i in Q column p (Q = M T, so
+        # R = T^-1 over the accepted columns); position[i] is monomial i's Q column or -1.
+        self._T = np.zeros((max(1, capacity), max(1, capacity)), order='F')
+        self._position = np.full(max(1, capacity), -1, dtype=np.int64)
         self._blocks: List[slice] = []
+        self._degree_rank_start: Dict[int, int] = {}  # 'arnoldi': first Q column of a degree
         self.n_columns = 0  # columns offered so far (accepted or not)
         self._rank = 0
         self._ref_norm = 0.0  # largest column norm so far (bounds every |r_ii|)
@@ -121,8 +178,30 @@ class IncrementalQR:
 
     @property
     def R(self) -> np.ndarray:
-        """Upper-triangular factor over the accepted columns, shape (rank, rank) (a view)."""
+        """Upper-triangular factor over the accepted columns, shape (rank, rank).
+
+        A view for the monomial variants; for ``'arnoldi'`` it is computed as ``T^-1`` (the
+        inverse of the accumulated monomial coefficients of Q's columns).
+        """
+        if self.variant == 'arnoldi':
+            T = self._accepted_T(self.rank)
+            return solve_triangular(T, np.eye(self.rank), lower=False, check_finite=False)
         return self._R[:self.rank, :self.rank]
+
+    @property
+    def T(self) -> np.ndarray:
+        """``'arnoldi'`` only: monomial coefficients of Q's columns, ``Q = M[:, :n] T``.
+
+        Shape (n_columns, rank); rows of dropped columns are zero, so over the accepted rows T
+        is upper triangular and equals ``R^-1``.
+        """
+        if self.variant != 'arnoldi':
+            raise AttributeError("T is kept by variant 'arnoldi' only")
+        return self._T[:self.n_columns, :self.rank]
+
+    def _accepted_T(self, k: int) -> np.ndarray:
+        cols = np.asarray(self.accepted[:k], dtype=np.int64)
+        return self._T[cols, :k]
 
     @property
     def qtb(self) -> np.ndarray:
@@ -133,12 +212,15 @@ class IncrementalQR:
         """max |r_ii| / min |r_ii| over the accepted columns (R's diagonal, Section 5)."""
         if self.rank == 0:
             return float('inf')
-        d = np.abs(np.diag(self.R))
+        if self.variant == 'arnoldi':
+            d = 1.0 / np.abs(np.diag(self._accepted_T(self.rank)))  # diag(R) = 1 / diag(T)
+        else:
+            d = np.abs(np.diag(self.R))
         return float(d.max() / d.min()) if d.min() > 0 else float('inf')
 
     # -------------------------------------------------------------------------------- growth
     def _reserve(self, extra: int) -> None:
-        need = self.rank + extra
+        need = self.n_columns + extra  # >= rank + extra
         cap = self._Q.shape[1]
         if need <= cap:
             return
@@ -146,10 +228,14 @@ class IncrementalQR:
         Q = np.empty((self.n_rows, new_cap), order='F')
         Q[:, :self.rank] = self._Q[:, :self.rank]
         R = np.zeros((new_cap, new_cap))
-        R[:self.rank, :self.rank] = self.R
+        R[:self.rank, :self.rank] = self._R[:self.rank, :self.rank]
         qtb = np.zeros(new_cap)
         qtb[:self.rank] = self.qtb
-        self._Q, self._R, self._qtb = Q, R, qtb
+        T = np.zeros((new_cap, new_cap), order='F')
+        T[:self.n_columns, :self.rank] = self._T[:self.n_columns, :self.rank]
+        position = np.full(new_cap, -1, dtype=np.int64)
+        position[:self.n_columns] = self._position[:self.n_columns]
+        self._Q, self._R, self._qtb, self._T, self._position = Q, R, qtb, T, position
 
     def append(self, block: np.ndarray) -> np.ndarray:
         """Append a block of columns (e.g. all monomials of the next degree) and factorise it.
@@ -165,11 +251,16 @@ class IncrementalQR:
             raise ValueError(f'block has shape {B.shape}, the factorisation has '
                              f'{self.n_rows} rows')
         m = B.shape[1]
+        if self.variant == 'arnoldi':
+            degrees = self._whole_degrees(m)
         self._reserve(m)
         k0 = self.rank
-        # the block is copied straight into Q's free columns (Fortran order) and worked on there
-        W = self._Q[:, k0:k0 + m]
-        W[...] = B
+        if self.variant == 'arnoldi':
+            W = B  # only read: the new columns are generated from the points
+        else:
+            # the block is copied straight into Q's free columns (Fortran order), worked on there
+            W = self._Q[:, k0:k0 + m]
+            W[...] = B
         norms = np.sqrt(np.einsum('ij,ij->j', W, W))
         if not np.all(np.isfinite(norms)):
             if not np.all(np.isfinite(W)):
@@ -177,6 +268,13 @@ class IncrementalQR:
             raise ValueError('block column norms overflow (values too large)')
         if m:
             self._ref_norm = max(self._ref_norm, float(norms.max()))
+        if self.variant == 'arnoldi':
+            first = self.n_columns
+            masks = []
+            for d in degrees:
+                local = slice(degree_slice(d).start - first, degree_slice(d).stop - first)
+                masks.append(self._append_arnoldi_degree(d, B[:, local], norms[local]))
+            return np.concatenate(masks) if masks else np.zeros(0, dtype=bool)
         if self.variant == 'classical' and m:
             mask = self._append_bcgs2(W, norms)
             if mask is not None:
@@ -207,6 +305,223 @@ class IncrementalQR:
             self._qtb[new] = self._Q[:, new].T @ self.b
         self.n_columns += m
         return accepted_mask
+
+    def _whole_degrees(self, m: int) -> List[int]:
+        """Degrees covered by a block of ``m`` columns appended now (``'arnoldi'`` only)."""
+        def count(d: int) -> int:
+            return monomial_count(d) if d >= 0 else 0
+
+        first = 0
+        while count(first - 1) < self.n_columns:
+            first += 1
+        last = first - 1
+        while count(last) < self.n_columns + m:
+            last += 1
+        if count(first - 1) != self.n_columns or count(last) != self.n_columns + m or m == 0:
+            raise ValueError(f"variant 'arnoldi' appends whole degrees of graded_lex monomials: "
+                             f'{m} columns after {self.n_columns} do not end a degree')
+        return list(range(first, last + 1))
+
+    def _arnoldi_candidates(self, degree: int, raw: np.ndarray, dropped: np.ndarray,
+                            V: np.ndarray, TV: np.ndarray, lead: np.ndarray,
+                            B: np.ndarray) -> None:
+        """Generate the degree's new columns: ``x_axis * q_parent`` or the raw monomial.
+
+        Column j of the degree is monomial ``m_j = x_axis * m_p``; when ``m_p`` has a Q column
+        ``q_p = sum_i T[i, p] m_i``, the candidate is ``x_axis * q_p`` with monomial
+        coefficients ``T[i, p]`` moved to ``x_axis * m_i``. Because graded_lex is a monomial
+        order (``m_i`` before ``m_p`` implies ``x m_i`` before ``x m_p``), its leading monomial
+        is ``m_j`` (coefficient ``T[p, p]``) and T stays triangular. A parent whose shifted
+        coefficients would reach a dropped monomial is not used (dropped columns keep
+        coefficient 0), and without a usable parent the raw monomial column is taken.
+        """
+        c0 = self.n_columns
+        m = V.shape[1]
+        lowered, raised = monomial_shift_indices(degree)
+        TV[...] = 0.0
+        js = c0 + np.arange(m)
+        if degree > 0 and not dropped.any() and not raw.any():
+            # nothing dropped so far: every parent has a Q column; one vectorised step
+            axis = np.argmax(lowered[:, js] >= 0, axis=0)
+            pos = self._position[lowered[axis, js]]
+            np.multiply(self._Q[:, pos], self._X[:, axis], out=V)
+            TV[raised[axis, :c0].T, np.arange(m)] = self._T[:c0, pos]
+            lead[:] = self._T[lowered[axis, js], pos]
+            return
+        for c in range(m):
+            j = c0 + c
+            if not raw[c]:
+                for axis in range(3):
+                    p = lowered[axis, j]
+                    if p < 0 or self._position[p] < 0:
+                        continue
+                    pos = self._position[p]
+                    t = self._T[:p + 1, pos]
+                    rows = np.flatnonzero(t)
+                    targets = raised[axis, rows]
+                    if dropped[targets].any():
+                        continue
+                    np.multiply(self._X[:, axis], self._Q[:, pos], out=V[:, c])
+                    TV[targets, c] = t[rows]
+                    lead[c] = t[p]
+                    break
+                else:
+                    raw[c] = True
+            if raw[c]:
+                V[:, c] = B[:, c]
+                TV[j, c] = 1.0
+                lead[c] = 1.0
+
+    def _append_arnoldi_degree(self, degree: int, B: np.ndarray,
+                               norms: np.ndarray) -> np.ndarray:
+        """Append the monomials of one degree by Arnoldi-style block Gram-Schmidt.
+
+        The new columns are ``x_axis * q_parent`` (see :meth:`_arnoldi_candidates`): with
+        the old columns they span the same space as the monomials, but keep a large part of
+        their norm off the old span (0.2-0.8 on the benchmark shapes, against below 1e-3 for
+        raw monomials), so one block Gram-Schmidt pass (Cholesky QR of the block, Householder
+        QR when a column is near the stability or rank thresholds) is accurate. The pass
+        projects on the two previous degrees only (exact arithmetic makes the rest zero);
+        the loss of orthogonality against all old columns is then estimated by a Gaussian
+        sketch and a second, full pass is made only when it exceeds ``orthogonality_tol``.
+        The monomial coefficients of the new Q columns are updated alongside (``Q = M T``),
+        and the monomial diagonal ``|r_jj| = h_jj / |T[p, p]|`` (``h_jj``: the norm of the
+        candidate off everything before it) drives the same stability and dropping tests as
+        the monomial variants.
+        """
+        n, m = B.shape
+        c0, k0 = self.n_columns, self._rank
+        Qo = self._Q[:, :k0]
+        To = self._T[:c0, :k0]
+        ref = self._ref_norm if self._ref_norm > 0 else 1.0
+        dropped = np.zeros(c0 + m, dtype=bool)
+        dropped[np.asarray(self.dropped, dtype=np.int64)] = True
+        raw = np.zeros(m, dtype=bool)
+        V = self._Q[:, k0:k0 + m]
+        TV = np.zeros((c0 + m, m), order='F')
+        lead = np.ones(m)
+        nz_norms = np.where(norms > 0, norms, 1.0)
+        while True:
+            self._arnoldi_candidates(degree, raw, dropped, V, TV, lead, B)
+            before = np.sqrt(np.einsum('ij,ij->j', V, V))
+            before = np.where(before > 0, before, 1.0)
+            # x * q_p (q_p of degree d-1) is orthogonal to every column of degree <= d-3 in
+            # exact arithmetic (<x q_p, q_i> = <q_p, x q_i>, and x q_i has degree <= d-2), so
+            # the first pass projects on the two previous degrees only; what rounding leaves on
+            # the older columns is part of the measured loss below. Raw monomials need all.
+            w0 = 0 if raw.any() else self._degree_rank_start.get(degree - 2, 0)
+            if k0 > w0:
+                Qw = self._Q[:, w0:k0]
+                H1 = dgemm(1.0, Qw, V, trans_a=True)
+                dgemm(-1.0, Qw, H1, beta=1.0, c=V, overwrite_c=True)
+                TV[:c0] -= self._T[:c0, w0:k0] @ H1
+            status = np.ones(m, dtype=np.int8)
+
+            def tests(cols: np.ndarray, d: np.ndarray):
+                r = d / np.abs(lead[cols])  # monomial |r_jj|
+                return d / before[cols], r / ref, r / nz_norms[cols]
+
+            ratios = np.zeros(m)
+            R1, info = dpotrf(dsyrk(1.0, V, trans=1), lower=0, clean=1, overwrite_a=1)
+            householder = True
+            if info == 0:
+                sine, ratio, rho = tests(np.arange(m), np.abs(np.diag(R1)))
+                householder = not (sine.min() > 1e-5 and rho.min() > 1e3 * _NOISE_FLOOR
+                                   and ratio.min() > 2.0 * self.stability_tol)
+            if householder:
+                if 0 < w0:
+                    # decisions near the thresholds: finish the pass on the older columns so
+                    # that no rounding leftover there is mistaken for a new direction
+                    Qa = self._Q[:, :w0]
+                    H0 = dgemm(1.0, Qa, V, trans_a=True)
+                    dgemm(-1.0, Qa, H0, beta=1.0, c=V, overwrite_c=True)
+                    TV[:c0] -= self._T[:c0, :w0] @ H0
+                cols = list(range(m))
+                while cols:
+                    Qh, R1 = qr(V[:, cols], mode='economic', check_finite=False)
+                    sine, ratio, rho = tests(np.asarray(cols), np.abs(np.diag(R1)))
+                    unstable = ratio < self.stability_tol
+                    bad = ((sine < _NOISE_FLOOR) | (rho < _NOISE_FLOOR)
+                           | (unstable & (self.stabilization == 'drop')))
+                    if bad.any():
+                        first_bad = int(np.flatnonzero(bad)[0])
+                        status[cols[first_bad]] = -1
+                        ratios[cols[first_bad]] = ratio[first_bad]
+                        del cols[first_bad]
+                        continue
+                    status[cols] = np.where(unstable & (self.stabilization == 'ridge'), 2, 1)
+                    break
+                keep = np.asarray(cols, dtype=np.int64)
+            else:
+                keep = np.arange(m)
+            lost = c0 + np.flatnonzero(status < 0)
+            contaminated = keep[np.any(TV[lost][:, keep] != 0.0, axis=0)] if lost.size else []
+            if len(contaminated) == 0:
+                break
+            # a kept candidate carries a monomial just dropped: take those columns raw, again
+            dropped[lost] = True
+            raw[contaminated] = True
+        mk = keep.size
+        if mk:
+            new = slice(k0, k0 + mk)
+            target = self._Q[:, new]
+            TVk = np.asfortranarray(TV[:, keep])
+            if householder:
+                sign = np.where(np.diag(R1) < 0, -1.0, 1.0)
+                Q1 = np.asfortranarray(Qh * sign)
+                R1 = np.asfortranarray(R1 * sign[:, None])
+            else:
+                Q1 = dtrsm(1.0, R1, V, side=1, lower=0, overwrite_b=1)  # Q1 = V R1^-1
+            TVk = dtrsm(1.0, R1, TVk, side=1, lower=0, overwrite_b=1)
+            # Loss of orthogonality against the old columns, ||Qo^T Q1||_F, estimated from a
+            # Gaussian sketch (E[||G^T E||_F^2] = s ||E||_F^2; randomised Gram-Schmidt,
+            # Balabanov & Grigori 2022) at s/m of the cost of the product itself; and the
+            # Cholesky QR's own loss inside the block, about eps * cond(R1)^2.
+            cross = 0.0
+            if k0:
+                G = self._sketch_rng.standard_normal((k0, _SKETCH))
+                Z = np.asfortranarray(Qo @ G)
+                cross = float(np.linalg.norm(dgemm(1.0, Z, Q1, trans_a=True))
+                              / math.sqrt(_SKETCH))
+            # (LAPACK's 1-norm condition estimate of the triangular factor)
+            within = 0.0 if householder else _EPS / max(dtrcon(R1)[0],
+                                                        _EPS) ** 2
+            self.orthogonality_loss_estimate = max(self.orthogonality_loss_estimate, cross,
+                                                   within)
+            if cross > self.orthogonality_tol:
+                H2 = dgemm(1.0, Qo, Q1, trans_a=True)
+                Q1 = dgemm(-1.0, Qo, H2, beta=1.0, c=Q1, overwrite_c=True)
+                TVk[:c0] -= To @ H2
+                self.reorthogonalised += mk
+            if cross > self.orthogonality_tol or within > self.orthogonality_tol:
+                R2, info = dpotrf(dsyrk(1.0, Q1, trans=1), lower=0, clean=1, overwrite_a=1)
+                if info != 0:
+                    raise np.linalg.LinAlgError(
+                        f'degree {degree}: re-orthogonalised block is not of full rank')
+                Q1 = dtrsm(1.0, R2, Q1, side=1, lower=0, overwrite_b=1)
+                TVk = dtrsm(1.0, R2, TVk, side=1, lower=0, overwrite_b=1)
+            if not np.shares_memory(Q1, target) or mk < m:
+                target[...] = Q1
+            self._T[:c0 + m, new] = TVk
+            self._qtb[new] = target.T @ self.b
+            self._position[c0 + keep] = np.arange(k0, k0 + mk)
+            # exact monomial diagonal: R = T^-1 over the accepted columns, r_jj = 1 / t_jj
+            ratios[keep] = 1.0 / np.abs(TVk[c0 + keep, np.arange(mk)]) / ref
+            self._blocks.append(new)
+            self._rank = k0 + mk
+        self._degree_rank_start[degree] = k0
+        for j in range(m):
+            col = c0 + j
+            self.column_norms.append(float(norms[j]))
+            self.diagonal_ratio.append(float(ratios[j]))
+            if status[j] < 0:
+                self.dropped.append(col)
+                continue
+            self.accepted.append(col)
+            if status[j] == 2:
+                self.unstable.append(col)
+        self.n_columns += m
+        return status > 0
 
     def _append_bcgs2(self, W: np.ndarray, norms: np.ndarray) -> Optional[np.ndarray]:
         """Block classical Gram-Schmidt with one re-orthogonalisation (BCGS2), BLAS-3 only.
@@ -415,7 +730,6 @@ class IncrementalQR:
         a = np.zeros(n)
         if k == 0:
             return a
-        R = self._R[:k, :k]
         y = self._qtb[:k]
         cols = np.asarray(self.accepted[:k], dtype=np.int64)
         w = np.zeros(k)
@@ -424,6 +738,14 @@ class IncrementalQR:
         if self.unstable:
             unstable = np.isin(cols, np.asarray(self.unstable, dtype=np.int64))
             w[unstable] = np.maximum(w[unstable], self.stability_tol)
+        if self.variant == 'arnoldi':
+            T = self._accepted_T(k)
+            if not np.any(w > 0):
+                a[cols] = T @ y  # T = R^-1: the back substitution is done
+                return a
+            R = solve_triangular(T, np.eye(k), lower=False, check_finite=False)
+        else:
+            R = self._R[:k, :k]
         if np.any(w > 0) and w[w > 0].min() >= 1e-3:
             # normal equations of the stacked problem: the ridge keeps cond <= k / min(w)^2
             A = R.T @ R

@@ -22,6 +22,7 @@ __all__ = [
     'degree_slice',
     'monomial_matrix',
     'monomial_gradient_matrices',
+    'monomial_shift_indices',
     'evaluate_polynomial',
     'evaluate_polynomial_gradient',
     'evaluate_polynomial_on_grid',
@@ -111,6 +112,33 @@ def _derivative_index(degree: int) -> Tuple[np.ndarray, np.ndarray]:
                 idx[axis, c] = lookup[tuple(lowered)]
                 fac[axis, c] = e[axis]
     return idx, fac
+
+
+def monomial_shift_indices(degree: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Neighbours of each monomial in the graded_lex basis up to ``degree``.
+
+    :param degree: maximum total degree n >= 0.
+    :returns: ``(lowered, raised)``, int arrays of shape (3, monomial_count(n)):
+        ``lowered[axis, c]`` is the index of monomial c divided by x_axis and
+        ``raised[axis, c]`` the index of monomial c times x_axis; -1 where that monomial does
+        not exist (exponent 0, or degree above n).
+    """
+    if degree < 0:
+        raise ValueError(f'degree must be >= 0, got {degree}')
+    return _shift_indices(int(degree))
+
+
+@lru_cache(maxsize=32)
+def _shift_indices(degree: int) -> Tuple[np.ndarray, np.ndarray]:
+    idx, fac = _derivative_index(degree)
+    lowered = np.where(fac > 0, idx, -1)
+    raised = np.full_like(lowered, -1)
+    for axis in range(3):
+        has = fac[axis] > 0
+        raised[axis, idx[axis, has]] = np.flatnonzero(has)
+    lowered.setflags(write=False)
+    raised.setflags(write=False)
+    return lowered, raised
 
 
 def monomial_gradient_matrices(points: Optional[np.ndarray], degree: int,
