@@ -41,9 +41,9 @@ import numpy as np  # noqa: E402
 from scipy.linalg import solve_triangular  # noqa: E402
 
 from ip_modeler.evaluation import evaluate_model  # noqa: E402
-from ip_modeler.fitting import (estimate_normals, fit_gradient_one,  # noqa: E402
-                                fit_implicit_polynomial, fit_taubin, normalize_points,
-                                three_layer_data)
+from ip_modeler.fitting import (DEFAULT_3L_OFFSET, estimate_normals,  # noqa: E402
+                                fit_gradient_one, fit_implicit_polynomial, fit_taubin,
+                                normalize_points, three_layer_data)
 from ip_modeler.incremental_qr import IncrementalQR  # noqa: E402
 from ip_modeler.monomials import degree_slice, monomial_count, monomial_matrix  # noqa: E402
 from ip_modeler.shapes import SHAPES, add_noise, sample_shape, visible_half  # noqa: E402
@@ -179,7 +179,7 @@ def run_timing(quick: bool) -> Dict:
         reps = (25 if n <= 3000 else 7) if not quick else 5
         P, N = sample_shape('superquadric', n, SIZE, np.random.default_rng(n))
         Pn, _, _ = normalize_points(P)
-        X, b = three_layer_data(Pn, N, 0.02)
+        X, b = three_layer_data(Pn, N, DEFAULT_3L_OFFSET)
         M = monomial_matrix(X, MAX_DEGREE)
         # same answer from all of them (sanity check of the timed code)
         (sol_inc, qr_inc), sol_cls = _incremental(M, b, X), _incremental(M, b, X, 'classical')[0]

@@ -43,6 +43,7 @@ __all__ = [
     'DegreeStep',
     'FitResult',
     'MAX_SUPPORTED_DEGREE',
+    'DEFAULT_3L_OFFSET',
     'check_point_cloud',
     'normalize_points',
     'estimate_normals',
@@ -54,6 +55,9 @@ __all__ = [
 ]
 
 MAX_SUPPORTED_DEGREE = 16
+# 3L layer offset c (fraction of the normalisation scale); see the package README for the
+# offsets tried (0.005-0.02) and why 0.02 was kept.
+DEFAULT_3L_OFFSET = 0.02
 
 
 @dataclass
@@ -290,7 +294,7 @@ def _prepare(points: np.ndarray, normals: Optional[np.ndarray], degree: int,
 
 def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = None, *,
                             max_degree: int = 8, target_rms: float = 0.0, min_degree: int = 1,
-                            offset: float = 0.02, stabilization: str = 'drop',
+                            offset: float = DEFAULT_3L_OFFSET, stabilization: str = 'drop',
                             stability_tol: float = 1e-6, ridge: float = 1e-6,
                             min_improvement: float = 0.05,
                             patience: int = 3, viewpoint: Optional[np.ndarray] = None,
@@ -416,7 +420,7 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
 
 
 def fit_3l_from_scratch(points: np.ndarray, normals: Optional[np.ndarray], degree: int, *,
-                        offset: float = 0.02, solver: str = 'lstsq',
+                        offset: float = DEFAULT_3L_OFFSET, solver: str = 'lstsq',
                         viewpoint: Optional[np.ndarray] = None) -> ImplicitPolynomialModel:
     """Baseline: the 3L system of one degree solved from scratch (no reuse across degrees).
 

@@ -35,7 +35,7 @@ from visualization_msgs.msg import Marker
 
 from ip_modeler.conversions import cloud_to_points, mesh_to_marker, model_to_msg
 from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_set_mesh
-from ip_modeler.fitting import estimate_normals, fit_implicit_polynomial, \
+from ip_modeler.fitting import DEFAULT_3L_OFFSET, estimate_normals, fit_implicit_polynomial, \
     MAX_SUPPORTED_DEGREE
 from ip_modeler.incremental_qr import STABILIZATION_MODES
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
@@ -55,7 +55,7 @@ class IpModelerNode(Node):
         self.declare_parameter('target_rms', 0.001, _float(
             'stop raising the degree once the RMS first-order distance of the points to the '
             'zero set is at most this [m]; 0: go to max_degree and keep the best', 0.0, 10.0))
-        self.declare_parameter('offset', 0.02, _float(
+        self.declare_parameter('offset', DEFAULT_3L_OFFSET, _float(
             '3L layer offset c along the normals, as a fraction of the normalisation scale',
             0.001, 0.45))
         self.declare_parameter('stabilization', 'drop', ParameterDescriptor(

@@ -26,8 +26,8 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_set_mesh
-from ip_modeler.fitting import (estimate_normals, fit_implicit_polynomial, FitResult,
-                                MAX_SUPPORTED_DEGREE)
+from ip_modeler.fitting import (DEFAULT_3L_OFFSET, estimate_normals, fit_implicit_polynomial,
+                                FitResult, MAX_SUPPORTED_DEGREE)
 from ip_modeler.incremental_qr import STABILIZATION_MODES
 from ip_modeler.monomials import MONOMIAL_ORDER, monomial_exponents
 from ip_modeler.shapes import add_noise, sample_shape, SHAPES, visible_half
@@ -148,7 +148,8 @@ def _parse(argv: Optional[List[str]]) -> argparse.Namespace:
     p.add_argument('--target-rms', type=float, default=0.0,
                    help='stop at the first degree with this RMS first-order distance [m] '
                    '(default: 1 %% of the bounding-box diagonal)')
-    p.add_argument('--offset', type=float, default=0.02, help='3L offset (fraction of scale)')
+    p.add_argument('--offset', type=float, default=DEFAULT_3L_OFFSET,
+                   help='3L offset (fraction of scale)')
     p.add_argument('--stabilization', choices=STABILIZATION_MODES, default='drop')
     p.add_argument('--ridge', type=float, default=1e-6)
     p.add_argument('--viewpoint', type=float, nargs=3, default=None,
