@@ -510,8 +510,13 @@ class IncrementalQR:
             self._blocks.append(new)
             self._rank = k0 + mk
         self._degree_rank_start[degree] = k0
-        for j in range(m):
-            col = c0 + j
+        return self._record_columns(norms, ratios, status)
+
+    def _record_columns(self, norms: np.ndarray, ratios: np.ndarray,
+                        status: np.ndarray) -> np.ndarray:
+        """Bookkeeping of an appended block in column order; returns the accepted mask."""
+        for j in range(status.size):
+            col = self.n_columns + j
             self.column_norms.append(float(norms[j]))
             self.diagonal_ratio.append(float(ratios[j]))
             if status[j] < 0:
@@ -520,7 +525,7 @@ class IncrementalQR:
             self.accepted.append(col)
             if status[j] == 2:
                 self.unstable.append(col)
-        self.n_columns += m
+        self.n_columns += status.size
         return status > 0
 
     def _append_bcgs2(self, W: np.ndarray, norms: np.ndarray) -> Optional[np.ndarray]:
@@ -606,19 +611,7 @@ class IncrementalQR:
             self._blocks.append(new)
             self._rank = k0 + mk
             self.reorthogonalised += mk
-        # bookkeeping in column order (as the column-wise path does)
-        for j in range(m):
-            col = self.n_columns + j
-            self.column_norms.append(float(norms[j]))
-            self.diagonal_ratio.append(float(ratios[j]))
-            if status[j] < 0:
-                self.dropped.append(col)
-                continue
-            self.accepted.append(col)
-            if status[j] == 2:
-                self.unstable.append(col)
-        self.n_columns += m
-        return status > 0
+        return self._record_columns(norms, ratios, status)
 
     def _project(self, W: np.ndarray, rows: slice, C: np.ndarray, norms: np.ndarray,
                  cols: np.ndarray) -> None:
