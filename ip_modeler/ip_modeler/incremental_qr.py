@@ -16,7 +16,8 @@ Gram-Schmidt on the monomials (``a = T Q^T b`` is the back substitution of ``R a
 gain is conditioning: a monomial keeps below 1e-3 of its norm off the old span, a candidate
 ``x q_p`` 0.2-0.8 (benchmark shapes), so one block pass is accurate where monomials need two.
 And ``<x q_p, q_i> = <q_p, x q_i> = 0`` for every ``q_i`` of degree ``<= d - 3`` (``x q_i``
-has degree ``<= d - 2``), so that pass projects on the two previous degrees only. The loss of
+has degree ``<= d - 2``), so that pass projects on the two previous degrees only, one degree
+block after the other (block modified Gram-Schmidt), then factorises the block. The loss of
 orthogonality left against all old columns is estimated with a 4-column Gaussian sketch
 (randomised Gram-Schmidt, Balabanov & Grigori 2022) and a second, full pass made when it
 exceeds ``orthogonality_tol`` (1e-10). Columns are dropped exactly as in the monomial variants
@@ -381,7 +382,8 @@ class IncrementalQR:
         their norm off the old span (0.2-0.8 on the benchmark shapes, against below 1e-3 for
         raw monomials), so one block Gram-Schmidt pass (Cholesky QR of the block, Householder
         QR when a column is near the stability or rank thresholds) is accurate. The pass
-        projects on the two previous degrees only (exact arithmetic makes the rest zero);
+        projects on the two previous degrees only (exact arithmetic makes the rest zero),
+        degree d-2 first, then d-1 (modified Gram-Schmidt order over the blocks);
         the loss of orthogonality against all old columns is then estimated by a Gaussian
         sketch and a second, full pass is made only when it exceeds ``orthogonality_tol``.
         The monomial coefficients of the new Q columns are updated alongside (``Q = M T``),
@@ -407,14 +409,18 @@ class IncrementalQR:
             before = np.where(before > 0, before, 1.0)
             # x * q_p (q_p of degree d-1) is orthogonal to every column of degree <= d-3 in
             # exact arithmetic (<x q_p, q_i> = <q_p, x q_i>, and x q_i has degree <= d-2), so
-            # the first pass projects on the two previous degrees only; what rounding leaves on
-            # the older columns is part of the measured loss below. Raw monomials need all.
+            # the first pass projects on the two previous degrees only, one degree block after
+            # the other (block modified Gram-Schmidt); what rounding leaves on the older
+            # columns is part of the measured loss below. Raw monomials need all columns.
             w0 = 0 if raw.any() else self._degree_rank_start.get(degree - 2, 0)
-            if k0 > w0:
-                Qw = self._Q[:, w0:k0]
-                H1 = dgemm(1.0, Qw, V, trans_a=True)
-                dgemm(-1.0, Qw, H1, beta=1.0, c=V, overwrite_c=True)
-                TV[:c0] -= self._T[:c0, w0:k0] @ H1
+            mid = self._degree_rank_start.get(degree - 1, k0)
+            bounds = [w0, mid, k0] if w0 < mid < k0 else [w0, k0]
+            for lo, hi in zip(bounds, bounds[1:]):
+                if hi > lo:
+                    Qw = self._Q[:, lo:hi]
+                    H1 = dgemm(1.0, Qw, V, trans_a=True)
+                    dgemm(-1.0, Qw, H1, beta=1.0, c=V, overwrite_c=True)
+                    TV[:c0] -= self._T[:c0, lo:hi] @ H1
             status = np.ones(m, dtype=np.int8)
 
             def tests(cols: np.ndarray, d: np.ndarray):
