@@ -29,8 +29,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType, SetParametersResult)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, RegionOfInterest
@@ -38,10 +37,12 @@ from stereo_msgs.msg import DisparityImage
 
 from stereo_depth.pipeline import (available_methods, compute_disparity, depth_to_points,
                                    disparity_to_depth, method_defaults)
-from stereo_manip_tools.conversions import (image_to_numpy, numpy_to_image, stamp_to_ns,
+from stereo_manip_tools.conversions import (CameraInfoError, image_to_numpy, numpy_to_image,
+                                            stamp_to_ns, stereo_parameters_from_camera_info,
                                             xyz_to_pointcloud2)
-from stereo_manip_tools.parameters import INPUT_QOS_CHOICES, input_qos_descriptor, \
-    input_qos_profile
+from stereo_manip_tools.parameters import bool_descriptor, float_descriptor, \
+    INPUT_QOS_CHOICES, input_qos_descriptor, input_qos_profile, int_descriptor, \
+    string_descriptor
 from stereo_manip_tools.sync import StampSynchronizer
 
 __all__ = ['StereoDepthNode', 'prepare_pair', 'stereo_geometry', 'main', 'SUPPORTED_ENCODINGS']
@@ -107,10 +108,13 @@ def stereo_geometry(left_info: Optional[CameraInfo], right_info: Optional[Camera
                     width: int, height: int) -> Dict[str, float]:
     """fx, fy, cx, cy, baseline [m] and doffs = cx_r - cx_l [px] from the rectified infos.
 
-    ROS convention: right ``P[0, 3] = -fx * B``. Depth ``Z = fx B / (d + doffs)``.
+    The infos are parsed by
+    :func:`stereo_manip_tools.conversions.stereo_parameters_from_camera_info` (ROS convention:
+    right ``P[0, 3] = -fx * B``; depth ``Z = fx B / (d + doffs)``); this adds the checks
+    against the frame: both infos received and of the images' size.
 
     :raises InputError: missing info, zero focal length, baseline not positive, or an info
-        whose size differs from the images.
+        whose size differs from the images (``reason`` is the counter key).
     """
     if left_info is None or right_info is None:
         missing = [n for n, i in (('left/camera_info', left_info),
@@ -122,74 +126,45 @@ def stereo_geometry(left_info: Optional[CameraInfo], right_info: Optional[Camera
             raise InputError('size_mismatch',
                              f'{side} CameraInfo is {info.width}x{info.height} but the images '
                              f'are {width}x{height}')
-    pl = np.asarray(left_info.p, dtype=float).reshape(3, 4)
-    pr = np.asarray(right_info.p, dtype=float).reshape(3, 4)
-    fx, fy = pl[0, 0], pl[1, 1]
-    if not (fx > 0 and fy > 0 and pr[0, 0] > 0):
-        raise InputError('bad_camera_info', f'CameraInfo projection P has focal lengths '
-                                            f'fx={fx}, fy={fy}, right fx={pr[0, 0]} (P not set?)')
-    baseline = -pr[0, 3] / pr[0, 0]
-    if not np.isfinite(baseline) or baseline <= 0:
-        raise InputError('zero_baseline',
-                         f'baseline from right CameraInfo P[0,3]={pr[0, 3]} is {baseline} m; '
-                         'must be > 0 (ROS convention P[0,3] = -fx * baseline)')
-    return {'fx': float(fx), 'fy': float(fy), 'cx': float(pl[0, 2]), 'cy': float(pl[1, 2]),
-            'baseline': float(baseline), 'doffs': float(pr[0, 2] - pl[0, 2])}
-
-
-def _descriptor(description: str, ptype: int, *, int_range=None, float_range=None,
-                read_only: bool = False, additional: str = '') -> ParameterDescriptor:
-    d = ParameterDescriptor(description=description, type=ptype, read_only=read_only,
-                            additional_constraints=additional)
-    if int_range is not None:
-        d.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1], step=1)]
-    if float_range is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=float(float_range[0]),
-                                                     to_value=float(float_range[1]), step=0.0)]
-    return d
+    try:
+        params = stereo_parameters_from_camera_info(left_info, right_info)
+    except CameraInfoError as exc:
+        raise InputError(exc.reason, str(exc)) from exc
+    return {'fx': params.fx, 'fy': params.fy, 'cx': params.cx, 'cy': params.cy,
+            'baseline': params.baseline, 'doffs': params.doffs}
 
 
 _PARAMS = {
     # name: (default, descriptor)
-    'method': ('block_matching', _descriptor(
+    'method': ('block_matching', string_descriptor(
         'disparity method (stereo_depth.pipeline): ' + ', '.join(available_methods()),
-        ParameterType.PARAMETER_STRING, additional='one of ' + ', '.join(available_methods()))),
-    'max_disparity': (64, _descriptor(
-        'number of disparity candidates D (0 .. D-1 pixels)', ParameterType.PARAMETER_INTEGER,
-        int_range=(2, 512))),
-    'sync_tolerance': (0.0, _descriptor(
+        additional_constraints='one of ' + ', '.join(available_methods()))),
+    'max_disparity': (64, int_descriptor(
+        'number of disparity candidates D (0 .. D-1 pixels)', 2, 512)),
+    'sync_tolerance': (0.0, float_descriptor(
         'largest stamp difference [s] between paired left/right images; 0 = exact stamps',
-        ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 1.0))),
+        0.0, 1.0)),
     'input_qos': ('sensor_data', input_qos_descriptor('image and camera_info')),
-    'sync_queue_size': (10, _descriptor(
-        'images kept per side while waiting for the partner', ParameterType.PARAMETER_INTEGER,
-        int_range=(1, 100), read_only=True)),
-    'publish_points': (True, _descriptor('publish the point cloud on points2',
-                                         ParameterType.PARAMETER_BOOL)),
-    'stats_period': (5.0, _descriptor(
-        'period [s] of the processing-rate log line', ParameterType.PARAMETER_DOUBLE,
-        float_range=(0.5, 3600.0), read_only=True)),
-    'p1': (10, _descriptor('SGM penalty of a 1-pixel disparity change (sgm, sgm4)',
-                           ParameterType.PARAMETER_INTEGER, int_range=(0, 1000))),
-    'p2': (90, _descriptor('SGM penalty of larger disparity changes, >= p1 (sgm, sgm4)',
-                           ParameterType.PARAMETER_INTEGER, int_range=(0, 4000))),
-    'block_size': (5, _descriptor('OpenCV block size (opencv_bm needs odd >= 5, '
-                                  'opencv_sgbm odd >= 1)',
-                                  ParameterType.PARAMETER_INTEGER, int_range=(1, 51))),
-    'lr_check': (True, _descriptor('left-right consistency check (own methods)',
-                                   ParameterType.PARAMETER_BOOL)),
-    'lr_max_diff': (1.0, _descriptor('left-right check tolerance [px]',
-                                     ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 10.0))),
-    'speckle_size': (100, _descriptor('largest blob [px] removed as a speckle; 0 = off',
-                                      ParameterType.PARAMETER_INTEGER, int_range=(0, 10000))),
-    'speckle_diff': (1.0, _descriptor('disparity step [px] separating speckle blobs',
-                                      ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 16.0))),
-    'median': (3, _descriptor('median filter window (odd; 1 = off)',
-                              ParameterType.PARAMETER_INTEGER, int_range=(1, 7))),
-    'fill': (True, _descriptor('fill missing pixels from the background (dense output)',
-                               ParameterType.PARAMETER_BOOL)),
-    'uniqueness': (0.0, _descriptor('SGM uniqueness margin (0 = off)',
-                                    ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 1.0))),
+    'sync_queue_size': (10, int_descriptor(
+        'images kept per side while waiting for the partner', 1, 100, read_only=True)),
+    'publish_points': (True, bool_descriptor('publish the point cloud on points2')),
+    'stats_period': (5.0, float_descriptor(
+        'period [s] of the processing-rate log line', 0.5, 3600.0, read_only=True)),
+    'p1': (10, int_descriptor('SGM penalty of a 1-pixel disparity change (sgm, sgm4)',
+                              0, 1000)),
+    'p2': (90, int_descriptor('SGM penalty of larger disparity changes, >= p1 (sgm, sgm4)',
+                              0, 4000)),
+    'block_size': (5, int_descriptor('OpenCV block size (opencv_bm needs odd >= 5, '
+                                     'opencv_sgbm odd >= 1)', 1, 51)),
+    'lr_check': (True, bool_descriptor('left-right consistency check (own methods)')),
+    'lr_max_diff': (1.0, float_descriptor('left-right check tolerance [px]', 0.0, 10.0)),
+    'speckle_size': (100, int_descriptor('largest blob [px] removed as a speckle; 0 = off',
+                                         0, 10000)),
+    'speckle_diff': (1.0, float_descriptor('disparity step [px] separating speckle blobs',
+                                           0.0, 16.0)),
+    'median': (3, int_descriptor('median filter window (odd; 1 = off)', 1, 7)),
+    'fill': (True, bool_descriptor('fill missing pixels from the background (dense output)')),
+    'uniqueness': (0.0, float_descriptor('SGM uniqueness margin (0 = off)', 0.0, 1.0)),
 }
 
 

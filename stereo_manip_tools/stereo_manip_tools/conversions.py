@@ -43,6 +43,7 @@ __all__ = [
     'point_to_numpy',
     'numpy_to_point',
     'StereoCameraParameters',
+    'CameraInfoError',
     'stereo_parameters_from_camera_info',
     'camera_info_from_parameters',
 ]
@@ -347,26 +348,43 @@ class StereoCameraParameters:
         return z.astype(np.float32)
 
 
+class CameraInfoError(ValueError):
+    """A rectified pair's ``CameraInfo`` that gives no usable stereo geometry.
+
+    ``reason`` names the problem for counters: ``'bad_camera_info'`` (focal length not set or
+    not finite), ``'zero_baseline'`` (baseline not positive) or ``'size_mismatch'``.
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
 def stereo_parameters_from_camera_info(left: CameraInfo, right: CameraInfo
                                        ) -> StereoCameraParameters:
     """Stereo geometry from a rectified pair's ``CameraInfo`` (ROS convention P_r[3] = -fx*B).
 
-    :raises ValueError: zero focal length, zero/negative baseline, size mismatch.
+    Depth is ``Z = fx B / (d + doffs)`` with ``doffs = cx_r - cx_l`` [px].
+
+    :raises CameraInfoError: focal length not set, baseline not positive, or left and right
+        sizes differ (``reason`` says which).
     """
     Pl = np.asarray(left.p, dtype=float).reshape(3, 4)
     Pr = np.asarray(right.p, dtype=float).reshape(3, 4)
     fx, fy = Pl[0, 0], Pl[1, 1]
-    if not (fx > 0 and fy > 0):
-        raise ValueError(f'left CameraInfo has focal length fx={fx}, fy={fy} (P not set?)')
-    if Pr[0, 0] <= 0:
-        raise ValueError(f'right CameraInfo has focal length fx={Pr[0, 0]} (P not set?)')
+    if not (np.isfinite(Pl).all() and np.isfinite(Pr).all() and fx > 0 and fy > 0
+            and Pr[0, 0] > 0):
+        raise CameraInfoError('bad_camera_info',
+                              f'CameraInfo projection P has focal lengths fx={fx}, fy={fy}, '
+                              f'right fx={Pr[0, 0]} (P not set?)')
     baseline = -Pr[0, 3] / Pr[0, 0]
     if not baseline > 0:
-        raise ValueError(f'baseline from right P[3] = {Pr[0, 3]} is {baseline} m; expected > 0 '
-                         '(ROS convention: right P[0,3] = -fx * B)')
+        raise CameraInfoError('zero_baseline',
+                              f'baseline from right CameraInfo P[0,3]={Pr[0, 3]} is {baseline} '
+                              'm; must be > 0 (ROS convention P[0,3] = -fx * baseline)')
     if (left.width, left.height) != (right.width, right.height):
-        raise ValueError(f'left CameraInfo is {left.width}x{left.height}, right is '
-                         f'{right.width}x{right.height}')
+        raise CameraInfoError('size_mismatch', f'left CameraInfo is {left.width}x{left.height}'
+                                               f', right is {right.width}x{right.height}')
     return StereoCameraParameters(fx=float(fx), fy=float(fy), cx=float(Pl[0, 2]),
                                   cy=float(Pl[1, 2]), baseline=float(baseline),
                                   width=int(left.width), height=int(left.height),

@@ -32,10 +32,16 @@ def int_descriptor(description: str, low: int, high: int,
                                                            to_value=int(high), step=1)])
 
 
-def string_descriptor(description: str, read_only: bool = False) -> ParameterDescriptor:
-    """A string parameter (validate its value in the node's on-set callback)."""
+def string_descriptor(description: str, read_only: bool = False,
+                      additional_constraints: str = '') -> ParameterDescriptor:
+    """A string parameter (validate its value in the node's on-set callback).
+
+    :param additional_constraints: free text shown by ``ros2 param describe`` (e.g. the
+        allowed values).
+    """
     return ParameterDescriptor(type=ParameterType.PARAMETER_STRING, description=description,
-                               read_only=read_only)
+                               read_only=read_only,
+                               additional_constraints=additional_constraints)
 
 
 def bool_descriptor(description: str, read_only: bool = False) -> ParameterDescriptor:

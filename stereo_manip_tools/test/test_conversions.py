@@ -8,10 +8,10 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from stereo_manip_tools.conversions import (
-    camera_info_from_parameters, image_to_numpy, IMAGE_ENCODINGS, matrices_to_path,
-    matrix_to_pose, ns_to_stamp, numpy_to_image, path_to_matrices, pointcloud2_to_array,
-    pose_to_matrix, stamp_to_ns, StereoCameraParameters, stereo_parameters_from_camera_info,
-    xyz_to_pointcloud2)
+    camera_info_from_parameters, CameraInfoError, image_to_numpy, IMAGE_ENCODINGS,
+    matrices_to_path, matrix_to_pose, ns_to_stamp, numpy_to_image, path_to_matrices,
+    pointcloud2_to_array, pose_to_matrix, stamp_to_ns, StereoCameraParameters,
+    stereo_parameters_from_camera_info, xyz_to_pointcloud2)
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 
@@ -96,14 +96,26 @@ def test_camera_info_round_trip_reproduces_baseline():
     assert z[0, 0] == pytest.approx(1.0) and np.isnan(z[0, 1])
 
 
-def test_camera_info_errors():
-    with pytest.raises(ValueError, match='focal length'):
+def test_camera_info_errors_name_their_reason():
+    with pytest.raises(CameraInfoError, match='focal length') as exc:
         stereo_parameters_from_camera_info(CameraInfo(), CameraInfo())
+    assert exc.value.reason == 'bad_camera_info' and isinstance(exc.value, ValueError)
     params = StereoCameraParameters(500.0, 500.0, 320.0, 240.0, 0.1, 640, 480)
     left, right = camera_info_from_parameters(params, Header())
     right.p[3] = 0.0
-    with pytest.raises(ValueError, match='baseline'):
+    with pytest.raises(CameraInfoError, match='baseline') as exc:
         stereo_parameters_from_camera_info(left, right)
+    assert exc.value.reason == 'zero_baseline'
+    left, right = camera_info_from_parameters(params, Header())
+    right.p[0] = float('nan')
+    with pytest.raises(CameraInfoError) as exc:
+        stereo_parameters_from_camera_info(left, right)
+    assert exc.value.reason == 'bad_camera_info'
+    left, right = camera_info_from_parameters(params, Header())
+    right.width = 320
+    with pytest.raises(CameraInfoError, match='640x480') as exc:
+        stereo_parameters_from_camera_info(left, right)
+    assert exc.value.reason == 'size_mismatch'
 
 
 def test_principal_point_offset_follows_middlebury():
