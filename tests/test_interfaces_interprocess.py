@@ -8,7 +8,8 @@ import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from stereo_manip_msgs import msg as msgs, srv as srvs
 
-from stereo_manip_tools.testing import fill_message, make_node, shutdown_node, spin_until
+from stereo_manip_tools.testing import fill_message, make_node, shutdown_node, spin_until, \
+    wait_for_subscribers
 
 MESSAGES = ['ContactElement', 'ContactPair', 'ContactState', 'JointEstimate',
             'ImplicitPolynomial']
@@ -42,8 +43,8 @@ def test_message_round_trip(peer, name):
     pub = node.create_publisher(cls, f'/roundtrip/in/{name}', qos)
     sent = [fill_message(cls, seed) for seed in range(3)]
     assert sent[0] != sent[1], 'filler must produce distinct messages'
-    assert spin_until(node, lambda: pub.get_subscription_count() > 0
-                      and sub.get_publisher_count() > 0, 15)
+    assert spin_until(node, lambda: sub.get_publisher_count() > 0, 15)
+    assert wait_for_subscribers(node, [pub], 15)
     for m in sent:
         pub.publish(m)
     assert spin_until(node, lambda: len(received) >= 3, 15), f'got {len(received)} of 3'

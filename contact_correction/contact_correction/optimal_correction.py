@@ -196,6 +196,16 @@ def _tait_bryan(Q: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.array([np.arctan2(-M[1, 2], M[2, 2]), a2, np.arctan2(-M[0, 1], M[0, 0])])
 
 
+def _unit_normal_and_edge(face_normal: np.ndarray, edge_direction: np.ndarray
+                          ) -> Tuple[np.ndarray, np.ndarray]:
+    """Unit face normal ``n`` and unit edge direction ``l`` made exactly orthogonal to it."""
+    n = np.asarray(face_normal, dtype=float)
+    n = n / np.linalg.norm(n)
+    el = np.asarray(edge_direction, dtype=float)
+    el = el - (el @ n) * n
+    return n, el / np.linalg.norm(el)
+
+
 def optimal_orientation_edge_on_face(R_E: np.ndarray, R_S: np.ndarray, face_normal: np.ndarray,
                                      edge_direction: np.ndarray
                                      ) -> Tuple[np.ndarray, Tuple[float, float, float]]:
@@ -209,11 +219,7 @@ def optimal_orientation_edge_on_face(R_E: np.ndarray, R_S: np.ndarray, face_norm
     :param edge_direction: ``l`` of the moving edge at the non-linear solution (``l . n = 0``).
     :returns: the optimal orientation and ``(alpha, beta, gamma)`` [rad].
     """
-    n = np.asarray(face_normal, dtype=float)
-    n = n / np.linalg.norm(n)
-    el = np.asarray(edge_direction, dtype=float)
-    el = el - (el @ n) * n
-    el = el / np.linalg.norm(el)
+    n, el = _unit_normal_and_edge(face_normal, edge_direction)
     c = cross3(n, el)
     # R_E R_S^T = R_c(-alpha) R_n(gamma) R_l(beta)
     a1, gamma, beta = _tait_bryan(R_E @ R_S.T, np.column_stack([c, n, el]))
@@ -232,11 +238,7 @@ def optimal_orientation_face_on_edge(R_E: np.ndarray, R_S: np.ndarray, face_norm
 
     :returns: the optimal orientation and ``(alpha, beta, gamma)`` [rad].
     """
-    n = np.asarray(face_normal, dtype=float)
-    n = n / np.linalg.norm(n)
-    el = np.asarray(edge_direction, dtype=float)
-    el = el - (el @ n) * n
-    el = el / np.linalg.norm(el)
+    n, el = _unit_normal_and_edge(face_normal, edge_direction)
     c = cross3(el, n)
     # R_E R_S^T = R_c(-alpha) R_l(gamma) R_n(beta)
     a1, gamma, beta = _tait_bryan(R_E @ R_S.T, np.column_stack([c, el, n]))

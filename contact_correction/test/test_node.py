@@ -14,7 +14,8 @@ from stereo_manip_msgs.srv import CorrectTrajectory
 from contact_correction.contact_correction_node import ContactCorrectionNode
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_to_matrix
-from stereo_manip_tools.testing import call_service, spin_until, start_executable
+from stereo_manip_tools.testing import call_service, spin_until, start_executable, \
+    wait_for_subscribers
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 STATIC = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
@@ -143,8 +144,7 @@ def test_installed_executable_serves_and_streams(ros_node):
         ros_node.create_subscription(Path, 'corrected_track', tracks.append, 10)
         pub_f = ros_node.create_publisher(PoseStamped, 'fixed_pose', 10)
         pub_m = ros_node.create_publisher(PoseStamped, 'moving_pose', 10)
-        assert spin_until(ros_node, lambda: pub_m.get_subscription_count() > 0
-                          and pub_f.get_subscription_count() > 0, 20)
+        assert wait_for_subscribers(ros_node, [pub_m, pub_f])
         pub_m.publish(_stamped(obs[0], stamps[0]))        # before any fixed pose: counted
         spin_until(ros_node, lambda: False, 0.3)
         pub_f.publish(_stamped(np.eye(4), stamps[0]))

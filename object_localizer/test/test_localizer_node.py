@@ -11,7 +11,7 @@ from object_localizer.localization import prepare_model
 from stereo_manip_tools.conversions import ns_to_stamp, pointcloud2_to_array, pose_to_matrix, \
     xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
-from stereo_manip_tools.testing import spin_until, start_executable
+from stereo_manip_tools.testing import spin_until, start_executable, wait_for_subscribers
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 
@@ -33,7 +33,7 @@ def test_node_publishes_pose_of_object_in_cloud(ros_node):
     with start_executable('object_localizer', 'object_localizer_node',
                           ros_args=['-p', 'models:=[link_arm]'], observer=ros_node,
                           wait_for_node='object_localizer') as proc:
-        assert spin_until(ros_node, lambda: pub.get_subscription_count() > 0, 20)
+        assert wait_for_subscribers(ros_node, [pub])
         pub.publish(bad)  # no y/z fields: rejected with a warning, node keeps going
         assert spin_until(ros_node, lambda: 'points2 rejected' in proc.output(), 20), \
             proc.output()

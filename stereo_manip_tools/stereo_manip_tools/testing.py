@@ -2,7 +2,8 @@
 
 - fixture ``ros_node``: an in-process rclpy node in its own ``Context``, destroyed after the test;
 - :func:`spin_until`, :func:`wait_for_message`, :func:`collect_messages`: spin until a condition
-  holds or a timeout expires (never forever);
+  holds or a timeout expires (never forever); :func:`wait_for_subscribers` before the first
+  message of a test that counts every message;
 - :func:`start_executable`: start ``install/<pkg>/lib/<pkg>/<exe>`` as its own process, exactly
   what ``ros2 run`` does, wait until its node is in the graph, and stop it with SIGINT at exit.
 
@@ -26,6 +27,7 @@ __all__ = [
     'shutdown_node',
     'spin_until',
     'wait_for_message',
+    'wait_for_subscribers',
     'call_service',
     'collect_messages',
     'executable_path',
@@ -78,6 +80,23 @@ def wait_for_message(node: Node, msg_type: Any, topic: str, timeout: float = 10.
     """The first message on ``topic`` within ``timeout`` [s], or None."""
     msgs = collect_messages(node, msg_type, topic, 1, timeout, qos)
     return msgs[0] if msgs else None
+
+
+def wait_for_subscribers(node: Node, publishers: Sequence[Any], timeout: float = 20.0,
+                         settle: float = 1.0) -> bool:
+    """Wait until every publisher has a matched subscription, then ``settle`` seconds more.
+
+    A publisher sees the remote reader before the remote side has matched the writer; a
+    message sent in between is lost (volatile durability), which is harmless for streams but
+    not for a test that counts every message, hence the settling time.
+
+    :returns: False when some publisher found no subscription within ``timeout`` [s].
+    """
+    if not spin_until(node, lambda: all(p.get_subscription_count() > 0 for p in publishers),
+                      timeout):
+        return False
+    spin_until(node, lambda: False, settle)
+    return True
 
 
 def start_executable(package: str, executable: str, *args: str, ros_args: Sequence[str] = (),

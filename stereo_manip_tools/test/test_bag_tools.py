@@ -11,7 +11,8 @@ from stereo_manip_msgs.msg import ContactState, JointEstimate
 
 from stereo_manip_tools.bag_io import bag_summary, BagError, BagWriter, get_message_class, \
     read_bag
-from stereo_manip_tools.testing import fill_message, spin_until, start_executable
+from stereo_manip_tools.testing import fill_message, spin_until, start_executable, \
+    wait_for_subscribers
 
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -102,8 +103,7 @@ def test_record_then_replay_gives_identical_messages_with_original_spacing(
                           '/test_bag/text', observer=node,
                           wait_for_node='bag_recorder') as rec:
         # wait until the recorder subscribed to both topics
-        assert spin_until(node, lambda: pub_je.get_subscription_count() > 0
-                          and pub_s.get_subscription_count() > 0, 20), rec.output()
+        assert wait_for_subscribers(node, [pub_je, pub_s]), rec.output()
         for k in range(24):
             m = fill_message(JointEstimate, k)
             published_at.append(time.monotonic())
