@@ -24,8 +24,8 @@ from joint_estimator.common import (
     DegenerateMotionError, JointType, minimal_rotations_onto, perpendicular_basis,
     rotation_vectors, rotations_about_axis)
 from joint_estimator.revolute import (
-    correct_orientations, DEFAULT_MIN_ROTATION_RANGE, fit_axis_directions, fit_revolute,
-    ml_angles, rotation_range_from_singular_values, solve_axis_points)
+    AxisLineModel, correct_orientations, DEFAULT_MIN_ROTATION_RANGE, fit_axis_directions,
+    fit_revolute, ml_angles, rotation_range_from_singular_values, solve_axis_points)
 
 __all__ = [
     'DEFAULT_MIN_TRANSLATION_RANGE',
@@ -166,16 +166,10 @@ def fit_spherical(R: np.ndarray, p: np.ndarray, **_) -> SphericalModel:
 
 
 @dataclass
-class CylindricalModel:
+class CylindricalModel(AxisLineModel):
     """Rotation about and translation along one line: ``^B l = Theta ^A l`` and
     ``^B c + s ^B l = Theta ^A c + t`` for some s per frame."""
 
-    axis_in_a: np.ndarray
-    axis_in_b: np.ndarray
-    point_in_a: np.ndarray
-    point_in_b: np.ndarray
-    reference: np.ndarray
-    rotation_range: float = float('nan')
     joint_type: JointType = JointType.CYLINDRICAL
     n_params: int = 8
 

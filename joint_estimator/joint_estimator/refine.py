@@ -20,7 +20,7 @@ import numpy as np
 
 from joint_estimator.common import minimal_rotations_onto, perpendicular_basis
 from joint_estimator.models import CylindricalModel
-from joint_estimator.revolute import RevoluteModel
+from joint_estimator.revolute import AxisLineModel, RevoluteModel
 
 __all__ = ['is_refinable', 'refine_model', 'levenberg_marquardt']
 
@@ -31,7 +31,7 @@ def _unit(v):
 
 def is_refinable(model) -> bool:
     """True for the models :func:`refine_model` changes (revolute, cylindrical)."""
-    return isinstance(model, (RevoluteModel, CylindricalModel))
+    return isinstance(model, AxisLineModel)
 
 
 def levenberg_marquardt(fun, x0: np.ndarray, max_iterations: int = 8, step: float = 1e-6,

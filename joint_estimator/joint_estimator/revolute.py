@@ -55,6 +55,7 @@ __all__ = [
     'rotation_range_from_singular_values',
     'correct_orientations',
     'solve_axis_points',
+    'AxisLineModel',
     'RevoluteModel',
     'fit_revolute',
     'estimate_revolute_joint',
@@ -174,8 +175,12 @@ def solve_axis_points(R_hat: np.ndarray, p: np.ndarray, rcond: float = 1e-9) -> 
 
 
 @dataclass
-class RevoluteModel:
-    """Revolute joint parameters (see the module docstring); ``reference`` is ``R_0``."""
+class AxisLineModel:
+    """Parameters shared by the joints that rotate about one line (revolute, cylindrical).
+
+    The line has direction ``axis_in_a`` / ``axis_in_b`` and passes through ``point_in_a`` /
+    ``point_in_b`` in the two links' frames; ``reference`` is ``R_0``.
+    """
 
     axis_in_a: np.ndarray
     axis_in_b: np.ndarray
@@ -183,6 +188,12 @@ class RevoluteModel:
     point_in_b: np.ndarray
     reference: np.ndarray
     rotation_range: float = float('nan')
+
+
+@dataclass
+class RevoluteModel(AxisLineModel):
+    """Revolute joint parameters (see the module docstring); ``reference`` is ``R_0``."""
+
     joint_type: JointType = JointType.REVOLUTE
     n_params: int = 9
 
