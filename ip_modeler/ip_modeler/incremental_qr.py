@@ -391,7 +391,7 @@ class IncrementalQR:
         candidate off everything before it) drives the same stability and dropping tests as
         the monomial variants.
         """
-        n, m = B.shape
+        m = B.shape[1]
         c0, k0 = self.n_columns, self._rank
         Qo = self._Q[:, :k0]
         To = self._T[:c0, :k0]
