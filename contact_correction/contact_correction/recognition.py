@@ -212,6 +212,7 @@ class RelationRecognizer:
     def __init__(self, moving: Polyhedron, fixed: Polyhedron,
                  options: Optional[RecognitionOptions] = None) -> None:
         self.moving, self.fixed = moving, fixed
+        self._guard = np.zeros(0, dtype=bool)
         self.options = options or RecognitionOptions()
         self.options.validate()
         self.margin = self.options.margin(moving)
@@ -298,6 +299,10 @@ class RelationRecognizer:
             else:
                 out[k] = False
         return out
+
+    def last_guard(self) -> np.ndarray:
+        """Guard flags of the last frame's pool (see :meth:`_guarded`)."""
+        return self._guard
 
     def _climb(self, h: Hypothesis) -> Hypothesis:
         keys = list(self._fc.groups)
@@ -449,19 +454,21 @@ class RelationTracker:
 
 
 def recognise_track(recognizer: RelationRecognizer, moving_poses: np.ndarray,
-                    fixed_poses: np.ndarray, smooth: bool = True
-                    ) -> Tuple[List[Hypothesis], List[FrameCandidates]]:
+                    fixed_poses: np.ndarray, smooth: bool = True,
+                    return_guards: bool = False) -> tuple:
     """Relations of a whole track: Viterbi back-tracking (``smooth``) or the online choice.
 
     :param moving_poses: observed poses (N, 4, 4); frames with non-finite poses get the empty
         relation and break the chain.
     :param fixed_poses: fixed poses (N, 4, 4).
-    :returns: per frame the chosen hypothesis and the frame's candidates.
+    :returns: per frame the chosen hypothesis and the frame's candidates (and, with
+        ``return_guards``, the pool's guard flags).
     """
     Tm = np.asarray(moving_poses, dtype=float).reshape(-1, 4, 4)
     Tf = np.asarray(fixed_poses, dtype=float).reshape(-1, 4, 4)
     chosen: List[Optional[Hypothesis]] = []
     frames: List[FrameCandidates] = []
+    guards: List[np.ndarray] = []
     segment: List[int] = []
     tracker = RelationTracker(recognizer)
     empty = Hypothesis(frozenset(), (), 0.0, 0, float('nan'))
@@ -478,10 +485,14 @@ def recognise_track(recognizer: RelationRecognizer, moving_poses: np.ndarray,
             flush()
             chosen.append(empty)
             frames.append(FrameCandidates([], {}))
+            guards.append(np.zeros(0, dtype=bool))
             continue
         h, fc = tracker.update(Tm[k], Tf[k], keep_history=smooth)
         chosen.append(h)
         frames.append(fc)
+        guards.append(recognizer.last_guard())
         segment.append(k)
     flush()
-    return [h for h in chosen], frames
+    if return_guards:
+        return chosen, frames, guards
+    return chosen, frames
