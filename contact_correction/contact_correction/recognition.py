@@ -63,8 +63,11 @@ class RecognitionOptions:
     :ivar sigma_rotation: stated pose noise, rotation [rad] (1 sigma).
     :ivar sigma_model: model / linearisation error added to every contact distance [m].
     :ivar search_margin: pool margin [m]; None = 3 (sigma_t + sigma_r * size / 2).
-    :ivar free_dof_penalty: score cost of each degree of freedom left free; None = the
-        BIC-like ``max(2, 2 ln(search_margin / (sqrt(2 pi) sigma_t)) + 2)``.
+    :ivar free_dof_penalty: score cost of each degree of freedom left free (3: chosen on the
+        synthetic tracks of :mod:`.tracks` with another noise seed than the benchmark's; the
+        BIC-like value ``2 ln(range / (sqrt(2 pi) sigma))`` is 2-4 for gaps over a
+        centimetre at millimetre noise); None = ``max(2, 2 ln(search_margin /
+        (sqrt(2 pi) sigma_t)) + 2)``.
     :ivar switch_cost: score cost per group switched on or off between consecutive frames.
     :ivar angle_tolerance: angular slack of the pool's local tests and of the face-against-face
         grouping [rad]; None = max(0.1, 4 sigma_r).
@@ -75,8 +78,8 @@ class RecognitionOptions:
     sigma_rotation: float = float(np.deg2rad(2.0))
     sigma_model: float = 2e-4
     search_margin: Optional[float] = None
-    free_dof_penalty: Optional[float] = None
-    switch_cost: float = 12.0
+    free_dof_penalty: Optional[float] = 3.0
+    switch_cost: float = 20.0
     angle_tolerance: Optional[float] = None
     beam: int = 6
 

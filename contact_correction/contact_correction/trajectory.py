@@ -38,16 +38,26 @@ MAX_FALLBACKS = 3
 
 def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                        T_fixed: np.ndarray, chosen: Hypothesis, frame: FrameCandidates,
-                       guard: Optional[np.ndarray] = None, **kwargs: Any) -> CorrectionResult:
+                       guard: Optional[np.ndarray] = None,
+                       element_margin: Optional[float] = None,
+                       **kwargs: Any) -> CorrectionResult:
     """Correct one frame with a recognised relation, falling back to the frame's next best
     relations and finally to pushing a penetrating observation out.
 
     :param chosen: the relation chosen for the frame.
     :param frame: the frame's candidates (pool and scored relations).
+    :param guard: the pool's guard flags (pairs whose penetration is real).
+    :param element_margin: largest accepted distance [m] of a contact point outside its
+        elements after correction (default: ``kwargs['element_margin']``).
     :param kwargs: passed to :func:`~contact_correction.correction.correct_pose`.
     """
     kwargs = dict(kwargs)
     kwargs.setdefault('prune_off_element', True)
+    if element_margin is not None:
+        # a recognised face-face contact may end with some of its pairs just beyond the
+        # overlap (the free coordinates are kept as observed); within the recognition margin
+        # that is accepted, penetration is still checked
+        kwargs['element_margin'] = max(kwargs.get('element_margin', 0.0), element_margin)
     check = kwargs.get('check_penetration', True)
     spacing = kwargs.get('penetration_spacing', 0.005)
     pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check \
@@ -126,7 +136,8 @@ class ContactCorrector:
             return correct_pose(self.moving, self.fixed, T_moving, T_fixed, **self.kwargs)
         h, fc = self.tracker.update(T_moving, T_fixed)
         return correct_recognised(self.moving, self.fixed, T_moving, T_fixed, h, fc,
-                                  self.recognizer.last_guard(), **self.kwargs)
+                                  self.recognizer.last_guard(), self.recognizer.margin,
+                                  **self.kwargs)
 
 
 def correct_trajectory(moving: Polyhedron, fixed: Polyhedron, moving_poses: np.ndarray,
@@ -168,7 +179,7 @@ def correct_trajectory(moving: Polyhedron, fixed: Polyhedron, moving_poses: np.n
         if rel is None and chosen is not None and np.all(np.isfinite(Tm[k])) \
                 and np.all(np.isfinite(Tf[k])):
             out.append(correct_recognised(moving, fixed, Tm[k], Tf[k], chosen[k], frames[k],
-                                          guards[k], **kwargs))
+                                          guards[k], rec.margin, **kwargs))
             continue
         r = correct_pose(moving, fixed, Tm[k], Tf[k], rel, **kwargs)
         r.relation_source = 'given' if rel is not None else 'detected'
