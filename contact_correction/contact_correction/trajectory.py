@@ -39,7 +39,7 @@ MAX_FALLBACKS = 3
 def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                        T_fixed: np.ndarray, chosen: Hypothesis, frame: FrameCandidates,
                        guard: Optional[np.ndarray] = None,
-                       element_margin: Optional[float] = None,
+                       recognition_margin: Optional[float] = None,
                        **kwargs: Any) -> CorrectionResult:
     """Correct one frame with a recognised relation, falling back to the frame's next best
     relations and finally to pushing a penetrating observation out.
@@ -47,17 +47,17 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
     :param chosen: the relation chosen for the frame.
     :param frame: the frame's candidates (pool and scored relations).
     :param guard: the pool's guard flags (pairs whose penetration is real).
-    :param element_margin: largest accepted distance [m] of a contact point outside its
-        elements after correction (default: ``kwargs['element_margin']``).
+    :param recognition_margin: the recognition's search margin [m]: contact points may end up
+        this far outside their elements (default: ``kwargs['element_margin']`` only).
     :param kwargs: passed to :func:`~contact_correction.correction.correct_pose`.
     """
     kwargs = dict(kwargs)
     kwargs.setdefault('prune_off_element', True)
-    if element_margin is not None:
+    if recognition_margin is not None:
         # a recognised face-face contact may end with some of its pairs just beyond the
         # overlap (the free coordinates are kept as observed); within the recognition margin
         # that is accepted, penetration is still checked
-        kwargs['element_margin'] = max(kwargs.get('element_margin', 0.0), element_margin)
+        kwargs['element_margin'] = max(kwargs.get('element_margin', 0.0), recognition_margin)
     check = kwargs.get('check_penetration', True)
     spacing = kwargs.get('penetration_spacing', 0.005)
     pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check \
