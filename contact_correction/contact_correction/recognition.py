@@ -268,7 +268,7 @@ class RelationRecognizer:
             h = self.evaluate(frozenset(s))
             if h is not None:
                 starts.append(h)
-        for h in sorted(starts, key=lambda h: h.score)[:3]:
+        for h in sorted(starts, key=lambda h: h.score)[:1]:
             self._climb(h)
         fc.best = min(fc.hypotheses.values(), key=lambda h: h.score)
         return fc
