@@ -12,6 +12,13 @@ Publications, one set per ``moving_pose`` message:
   - ``corrected_track`` (nav_msgs/Path): the last ``track_length`` output poses.
 Service ``correct_trajectory`` (stereo_manip_msgs/CorrectTrajectory) corrects a batch.
 
+The relation of each frame is recognised (``recognition`` true: model selection against the
+stated pose noise ``sigma_translation`` / ``sigma_rotation`` and an online temporal model over
+the stream, :class:`contact_correction.trajectory.ContactCorrector`; the service back-tracks
+its whole batch), given (``relation``) or detected per frame with ``tolerance``.
+``contact_state`` and ``corrected_track`` are built only while they have subscribers; the track
+keeps at most ``track_length`` poses.
+
 Bad input (NaN or zero quaternions, no fixed pose yet) is logged with the reason and counted;
 the counts are appended to every ContactState status.
 """
