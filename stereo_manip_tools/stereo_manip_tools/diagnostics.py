@@ -1,0 +1,259 @@
+"""``/diagnostics`` for stereo_manip nodes, in the manner of ``diagnostic_updater``.
+
+``diagnostic_updater`` is not on PyPI; this module is the part of it the nodes need, publishing
+``diagnostic_msgs/DiagnosticArray`` on ``/diagnostics`` (what ``diagnostic_aggregator``,
+``rqt_robot_monitor`` and ``ros2 topic echo /diagnostics`` read) once per period (1 s):
+
+- :class:`Updater`: a registry of named tasks; each fills a :class:`DiagnosticStatusWrapper`
+  (level, message, key/values), published as ``"<node name>: <task name>"``;
+- :class:`TopicStatus`: a frequency and latency monitor (``diagnostic_updater.FrequencyStatus``
+  + ``TimeStampStatus`` in one): ``tick(stamp)`` where a message is published or received; it
+  reports the rate over the last period and over a window, and the age of the stamps
+  (now - header stamp: the latency from the camera exposure when stamps are the camera's)
+  as median / p95 / max over the period;
+- :class:`NodeDiagnostics`: the per-node hook: an Updater with a ``counters`` task that shows
+  a node's counter dict and warns while a rejection counter grows, plus topic monitors.
+
+A node's hook is two lines: ``self.diagnostics = NodeDiagnostics(self, self.counts)`` in
+``__init__`` and ``self.diagnostics.tick('corrected_pose', header.stamp)`` where it publishes.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+import re
+import time
+from typing import Any, Callable, Deque, Dict, List, Mapping, Optional, Tuple, Union
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import numpy as np
+from rclpy.node import Node
+
+from stereo_manip_tools.conversions import stamp_to_ns
+
+__all__ = [
+    'OK',
+    'WARN',
+    'ERROR',
+    'STALE',
+    'LEVEL_NAMES',
+    'DIAGNOSTICS_TOPIC',
+    'DiagnosticStatusWrapper',
+    'Updater',
+    'TopicStatus',
+    'NodeDiagnostics',
+    'DEFAULT_WARN_PATTERN',
+]
+
+DIAGNOSTICS_TOPIC = '/diagnostics'
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
+
+#: counter names that count lost or refused input: their growth makes the counters task WARN
+DEFAULT_WARN_PATTERN = r'reject|fail|drop|not_found|unpaired|invalid|error|no_fixed|timed_out'
+
+
+class DiagnosticStatusWrapper:
+    """``diagnostic_updater.DiagnosticStatusWrapper``: level, message and key/values of a task."""
+
+    def __init__(self, name: str = '', hardware_id: str = '') -> None:
+        self.name = name
+        self.hardware_id = hardware_id
+        self.level = OK
+        self.message = ''
+        self.values: List[Tuple[str, str]] = []
+
+    def summary(self, level: int, message: str) -> None:
+        """Set level and message."""
+        self.level, self.message = int(level), str(message)
+
+    def merge_summary(self, level: int, message: str) -> None:
+        """Keep the worse level; join the messages of the worst level."""
+        level = int(level)
+        if level > self.level:
+            self.level, self.message = level, str(message)
+        elif level == self.level and message and level > OK:
+            self.message = f'{self.message}; {message}' if self.message else str(message)
+
+    def add(self, key: str, value: Any) -> None:
+        """Add a key/value (floats with 4 significant digits)."""
+        if isinstance(value, float):
+            value = f'{value:.4g}'
+        self.values.append((str(key), str(value)))
+
+    def to_msg(self) -> DiagnosticStatus:
+        """The ``diagnostic_msgs/DiagnosticStatus`` (level as the message's byte)."""
+        return DiagnosticStatus(level=bytes([self.level]), name=self.name,
+                                message=self.message or LEVEL_NAMES[self.level],
+                                hardware_id=self.hardware_id,
+                                values=[KeyValue(key=k, value=v) for k, v in self.values])
+
+
+Task = Callable[[DiagnosticStatusWrapper], None]
+Counters = Union[Mapping[str, int], Callable[[], Mapping[str, int]]]
+
+
+class Updater:
+    """``diagnostic_updater.Updater``: runs the tasks every ``period`` s and publishes them.
+
+    A task that raises is reported as ERROR with the exception text (the node keeps running).
+    """
+
+    def __init__(self, node: Node, period: float = 1.0, hardware_id: str = '') -> None:
+        if not period > 0:
+            raise ValueError(f'period must be > 0 s, got {period}')
+        self.node = node
+        self.hardware_id = hardware_id
+        self.period = float(period)
+        self.tasks: Dict[str, Task] = {}
+        self.published = 0
+        self._pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self._timer = node.create_timer(self.period, self.force_update)
+
+    def add(self, name: str, task: Task) -> None:
+        """Register (or replace) the task ``name``."""
+        self.tasks[name] = task
+
+    def remove(self, name: str) -> None:
+        """Unregister a task."""
+        self.tasks.pop(name, None)
+
+    def _status_name(self, task_name: str) -> str:
+        return f'{self.node.get_name()}: {task_name}'
+
+    def run_tasks(self) -> List[DiagnosticStatusWrapper]:
+        """Run every task once (what each period publishes)."""
+        out = []
+        for name, task in list(self.tasks.items()):
+            stat = DiagnosticStatusWrapper(self._status_name(name), self.hardware_id)
+            try:
+                task(stat)
+            except Exception as exc:  # noqa: BLE001 - a broken task must not stop the node
+                stat.summary(ERROR, f'diagnostic task failed: {type(exc).__name__}: {exc}')
+            out.append(stat)
+        return out
+
+    def force_update(self) -> None:
+        """Run the tasks and publish one DiagnosticArray now."""
+        statuses = self.run_tasks()
+        if not statuses:
+            return
+        msg = DiagnosticArray(status=[s.to_msg() for s in statuses])
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        self._pub.publish(msg)
+        self.published += 1
+
+
+class TopicStatus:
+    """Rate and stamp age of one topic (published or received), for a diagnostic task.
+
+    :param min_rate: below it (Hz, over the last period) the status is WARN; 0: never.
+    :param max_age: stamp age [s] whose p95 over the period above it is WARN; 0: never.
+    :param window: periods in the long-run rate.
+    """
+
+    def __init__(self, name: str, min_rate: float = 0.0, max_age: float = 0.0,
+                 window: int = 10, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        self.name = name
+        self.min_rate = float(min_rate)
+        self.max_age = float(max_age)
+        self._clock = clock
+        self.count = 0
+        self._period_count = 0
+        self._ages: List[float] = []
+        self._history: Deque[Tuple[int, int]] = deque(maxlen=max(int(window), 1) + 1)
+        self._history.append((clock(), 0))
+        self.last_tick_ns: Optional[int] = None
+
+    def tick(self, stamp: Optional[Time] = None, now_ns: Optional[int] = None) -> None:
+        """One message. ``stamp``: its header stamp; ``now_ns``: the node clock's now [ns]
+        (both needed for the age; without them only the rate is measured)."""
+        self.count += 1
+        self._period_count += 1
+        self.last_tick_ns = self._clock()
+        if stamp is not None and now_ns is not None:
+            stamp_ns = stamp_to_ns(stamp)
+            if stamp_ns > 0:
+                self._ages.append((now_ns - stamp_ns) * 1e-9)
+
+    def run(self, stat: DiagnosticStatusWrapper) -> None:
+        """Fill ``stat`` with this period's figures and start a new period."""
+        now = self._clock()
+        t0, c0 = self._history[-1]
+        period = max((now - t0) * 1e-9, 1e-9)
+        rate = self._period_count / period
+        self._history.append((now, self.count))
+        t_old, c_old = self._history[0]
+        window_rate = (self.count - c_old) / max((now - t_old) * 1e-9, 1e-9)
+        p = self.name
+        stat.add(f'{p} rate [Hz]', rate)
+        stat.add(f'{p} rate over {len(self._history) - 1} periods [Hz]', window_rate)
+        stat.add(f'{p} count', self.count)
+        ages = np.array(self._ages)
+        if ages.size:
+            stat.add(f'{p} stamp age median [s]', float(np.median(ages)))
+            stat.add(f'{p} stamp age p95 [s]', float(np.percentile(ages, 95)))
+            stat.add(f'{p} stamp age max [s]', float(ages.max()))
+        if self.min_rate > 0 and rate < self.min_rate:
+            stat.merge_summary(WARN, f'{p}: {rate:.2f} Hz < {self.min_rate:.2f} Hz')
+        if self.max_age > 0 and ages.size and np.percentile(ages, 95) > self.max_age:
+            stat.merge_summary(WARN, f'{p}: stamp age p95 {np.percentile(ages, 95):.3f} s > '
+                                     f'{self.max_age:.3f} s')
+        self._period_count = 0
+        self._ages = []
+
+
+class NodeDiagnostics(Updater):
+    """The diagnostics hook of a stereo_manip node.
+
+    Tasks: ``counters`` (every entry of ``counters``, read at each period; WARN while a counter
+    whose name matches ``warn_pattern`` grew during the period), ``topics`` (one
+    :class:`TopicStatus` per name passed to :meth:`tick`), and any added with :meth:`add`.
+
+    :param counters: the node's own counter dict (kept by reference), or a callable returning one.
+    """
+
+    def __init__(self, node: Node, counters: Optional[Counters] = None,
+                 period: float = 1.0, warn_pattern: str = DEFAULT_WARN_PATTERN,
+                 hardware_id: str = '') -> None:
+        super().__init__(node, period, hardware_id)
+        self._counters = counters
+        self._warn = re.compile(warn_pattern)
+        self._last_counts: Dict[str, int] = {}
+        self.topics: Dict[str, TopicStatus] = {}
+        if counters is not None:
+            self.add('counters', self._counters_task)
+        self.add('topics', self._topics_task)
+
+    def topic(self, name: str, min_rate: float = 0.0, max_age: float = 0.0) -> TopicStatus:
+        """The monitor of ``name`` (created on first use)."""
+        if name not in self.topics:
+            self.topics[name] = TopicStatus(name, min_rate, max_age)
+        return self.topics[name]
+
+    def tick(self, name: str, stamp: Optional[Time] = None) -> None:
+        """Count one message of ``name``; with its header ``stamp`` also its age."""
+        now_ns = self.node.get_clock().now().nanoseconds if stamp is not None else None
+        self.topic(name).tick(stamp, now_ns)
+
+    def _counters_task(self, stat: DiagnosticStatusWrapper) -> None:
+        counts = self._counters() if callable(self._counters) else self._counters
+        grown = []
+        for key, value in dict(counts).items():
+            stat.add(key, value)
+            previous = self._last_counts.get(key, 0)
+            if self._warn.search(key) and isinstance(value, (int, np.integer)) \
+                    and value > previous:
+                grown.append(f'{key} +{value - previous}')
+            self._last_counts[key] = value
+        if grown:
+            stat.summary(WARN, 'input lost or refused this period: ' + ', '.join(grown))
+        else:
+            stat.summary(OK, 'no input lost or refused this period')
+
+    def _topics_task(self, stat: DiagnosticStatusWrapper) -> None:
+        stat.summary(OK, ', '.join(f'{n} {t._period_count}' for n, t in self.topics.items())
+                     + ' messages this period' if self.topics else 'no topic ticked yet')
+        for t in self.topics.values():
+            t.run(stat)
