@@ -243,8 +243,9 @@ class TransformListener:
         up_target = self._chain_to_root(target_frame)
         common = next((f for f in up_source if f in set(up_target)), None)
         if common is None:
+            known = ', '.join(self.frames())
             raise FrameLookupError(f'{source_frame!r} and {target_frame!r} are not connected in '
-                                   f'the TF tree ({len(self.edges)} edges: {", ".join(self.frames())})')
+                                   f'the TF tree (frames: {known})')
         T_c_s, s1 = self._to_ancestor(source_frame, common)
         T_c_t, s2 = self._to_ancestor(target_frame, common)
         stamps = [s for s in (s1, s2) if s]
