@@ -39,6 +39,8 @@ from contact_correction.correction import CorrectionResult, correct_pose
 from contact_correction.polyhedron import Polyhedron, load_polyhedron
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_stamped_to_matrix
+from stereo_manip_tools.diagnostics import NodeDiagnostics
+from stereo_manip_tools.tf import object_frame, PoseTfPublisher
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 from stereo_manip_tools.parameters import bool_descriptor as _bool, \
     float_descriptor as _float, int_descriptor as _int, string_descriptor as _string
@@ -116,6 +118,8 @@ class ContactCorrectionNode(Node):
         self.counts: Dict[str, int] = {'received': 0, 'rejected': 0, 'no_fixed_pose': 0,
                                        'corrected': 0, 'passed_through': 0}
         self.track: deque = deque(maxlen=int(g('track_length').value))
+        self.tf = PoseTfPublisher(self)   # corrected pose on /tf as <moving>_corrected
+        self.diagnostics = NodeDiagnostics(self, self.counts)
         self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
         self.state_pub = self.create_publisher(ContactState, 'contact_state', 10)
         self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
@@ -190,6 +194,7 @@ class ContactCorrectionNode(Node):
 
     def _on_moving(self, msg: PoseStamped) -> None:
         self.counts['received'] += 1
+        self.diagnostics.tick('moving_pose', msg.header.stamp)
         header = msg.header
         try:
             T, stamp, frame = pose_stamped_to_matrix(msg)
@@ -203,7 +208,11 @@ class ContactCorrectionNode(Node):
         self.counts['corrected' if result.corrected else 'passed_through'] += 1
         if not result.corrected:
             self.get_logger().debug(f'pose passed through: {result.status}')
-        self.pose_pub.publish(PoseStamped(header=header, pose=matrix_to_pose(result.T_moving)))
+        corrected = PoseStamped(header=header, pose=matrix_to_pose(result.T_moving))
+        self.pose_pub.publish(corrected)
+        self.tf.send_pose(corrected, object_frame(self.get_parameter('moving_object').value)
+                          + '_corrected')
+        self.diagnostics.tick('corrected_pose', header.stamp)
         state = contact_state_msg(result, Header(stamp=header.stamp, frame_id=self._fixed_frame()),
                                   self.get_parameter('moving_object').value,
                                   self.get_parameter('fixed_object').value)

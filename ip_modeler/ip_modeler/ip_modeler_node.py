@@ -38,6 +38,7 @@ from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_se
 from ip_modeler.fitting import DEFAULT_3L_OFFSET, estimate_normals, fit_implicit_polynomial, \
     MAX_SUPPORTED_DEGREE
 from ip_modeler.incremental_qr import STABILIZATION_MODES
+from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
     input_qos_descriptor, input_qos_profile, int_descriptor as _int
 
@@ -91,6 +92,7 @@ class IpModelerNode(Node):
                                        'nonfinite_points_dropped': 0,
                                        'points_subsampled_away': 0}
         self._rng = np.random.default_rng(0)
+        self.diagnostics = NodeDiagnostics(self, self.counts)
         self.poly_pub = self.create_publisher(ImplicitPolynomial, 'implicit_polynomial', 10)
         self.marker_pub = self.create_publisher(Marker, 'zero_set_marker', 10)
         self.create_subscription(PointCloud2, 'cloud', self._on_cloud,
@@ -181,6 +183,7 @@ class IpModelerNode(Node):
             return
         self.poly_pub.publish(poly)
         self.marker_pub.publish(marker)
+        self.diagnostics.tick('implicit_polynomial', msg.header.stamp)
         self.get_logger().info(
             f'fitted degree {poly.degree} to {poly.point_count} points: RMS distance '
             f'{poly.rms_distance * 1e3:.2f} mm, max {poly.max_distance * 1e3:.2f} mm')

@@ -44,7 +44,9 @@ from joint_estimator.common import JointType, relative_track
 from joint_estimator.selection import estimate_joint, JointEstimation
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     numpy_to_point, numpy_to_vector3, path_to_matrices, pose_stamped_to_matrix
+from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.sync import StampSynchronizer
+from stereo_manip_tools.tf import object_frame, PoseTfPublisher
 from stereo_manip_tools.parameters import (
     float_descriptor as _float, int_descriptor as _int, string_descriptor as _string)
 
@@ -182,6 +184,9 @@ class JointEstimatorNode(Node):
                                      lambda m: self._on_link(m, 'a'), qos)
             self.create_subscription(PoseStamped, 'link_b_pose',
                                      lambda m: self._on_link(m, 'b'), qos)
+        self.tf = PoseTfPublisher(self)   # corrected link A in link B: <link_a_frame>_corrected
+        self.diagnostics = NodeDiagnostics(self, lambda: {**self.counts, **{
+            f'unpaired_{k}': v for k, v in (self.sync.dropped if self.sync else {}).items()}})
         self.get_logger().info(f'joint_estimator: input {mode}, window '
                                f'{self.window.maxlen}, joint type '
                                f'{self.get_parameter("joint_type").value}')
@@ -250,6 +255,7 @@ class JointEstimatorNode(Node):
         self._add(T, stamp)
 
     def _add(self, T: np.ndarray, stamp: int) -> None:
+        self.diagnostics.tick('relative_pose', ns_to_stamp(stamp))
         if self.window and stamp <= self.window[-1][0]:
             self._reject('pose', f'stamp {stamp} ns is not after the previous one '
                          f'({self.window[-1][0]} ns); stamps must increase')
@@ -285,8 +291,11 @@ class JointEstimatorNode(Node):
                                 header.frame_id)
         msg.status = f'{msg.status}; {self._dropped_summary()}'
         self.estimate_pub.publish(msg)
-        self.pose_pub.publish(PoseStamped(header=header,
-                                          pose=matrix_to_pose(est.best.corrected[-1])))
+        corrected = PoseStamped(header=header, pose=matrix_to_pose(est.best.corrected[-1]))
+        self.pose_pub.publish(corrected)
+        self.tf.send_pose(corrected, object_frame(self.get_parameter('link_a_frame').value)
+                          + '_corrected')
+        self.diagnostics.tick('joint_estimate', header.stamp)
         self.track_pub.publish(matrices_to_path(est.best.corrected, header.frame_id, stamps))
         self.marker_pub.publish(estimation_to_marker(est, header))
 

@@ -43,7 +43,9 @@ from stereo_manip_tools.conversions import (CameraInfoError, image_to_numpy, num
 from stereo_manip_tools.parameters import bool_descriptor, float_descriptor, \
     INPUT_QOS_CHOICES, input_qos_descriptor, input_qos_profile, int_descriptor, \
     string_descriptor
+from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.sync import StampSynchronizer
+from stereo_manip_tools.tf import publish_camera_mount
 
 __all__ = ['StereoDepthNode', 'prepare_pair', 'stereo_geometry', 'main', 'SUPPORTED_ENCODINGS']
 
@@ -209,6 +211,9 @@ class StereoDepthNode(Node):
         self._last_warning: Dict[str, float] = {}
         self._proc_times: list = []
         self._running = True
+        self.diagnostics = NodeDiagnostics(self, lambda: {**self.counters, **{
+            f'rejected_{k}': v for k, v in self.rejected.items()}})
+        self.camera_mount = publish_camera_mount(self)   # static TF parent -> optical frame
 
         self.pub_disparity = self.create_publisher(DisparityImage, 'disparity', 5)
         self.pub_depth = self.create_publisher(Image, 'depth', 5)
@@ -361,6 +366,7 @@ class StereoDepthNode(Node):
             self.counters['processed'] += 1
             self._proc_times.append(time.perf_counter() - t0)
         self.pub_disparity.publish(dmsg)
+        self.diagnostics.tick('disparity', header.stamp)
         self.pub_depth.publish(numpy_to_image(depth, '32FC1', header))
         if params['publish_points']:
             pts = depth_to_points(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'])

@@ -39,6 +39,7 @@ from stereo_msgs.msg import DisparityImage
 from stereo_manip_tools.conversions import (
     camera_info_from_parameters, matrix_to_pose_stamped, numpy_to_image,
     StereoCameraParameters)
+from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_depth.synthetic import (
     load_motorcycle, load_stereo_files, RealStereoPair, RenderOptions, SCENES, StereoCamera,
     SyntheticStereo)
@@ -160,6 +161,9 @@ class SyntheticCameraNode(Node):
         self._pub_disp = self.create_publisher(DisparityImage, 'disparity_truth', 5)
         self._pub_occ = self.create_publisher(Image, 'occlusion_truth', 5)
         self._rebuild()  # raises ValueError/FileNotFoundError with a clear message
+        self.diagnostics = NodeDiagnostics(self, lambda: {
+            'frames_published': self.frames_published, 'late_frames': self.late_frames,
+            'render_errors': self.render_errors})
         self._timer = None
         if self._values['trigger']:
             self.create_subscription(Empty, 'trigger', lambda _msg: self._tick(), 10)
@@ -291,6 +295,7 @@ class SyntheticCameraNode(Node):
         info_l, info_r = self._infos(hl, hr)
         self._pub_left.publish(numpy_to_image(left, enc, hl))
         self._pub_right.publish(numpy_to_image(right, enc, hr))
+        self.diagnostics.tick('stereo pairs', hl.stamp)
         self._pub_info_l.publish(info_l)
         self._pub_info_r.publish(info_r)
         if v['ground_truth']:

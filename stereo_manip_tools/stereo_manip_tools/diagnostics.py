@@ -51,7 +51,7 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
 
 #: counter names that count lost or refused input: their growth makes the counters task WARN
-DEFAULT_WARN_PATTERN = r'reject|fail|drop|not_found|unpaired|invalid|error|no_fixed|timed_out'
+DEFAULT_WARN_PATTERN = r'reject|fail|drop|not_found|unpaired|invalid|error|no_fixed|timed_out|late'
 
 
 class DiagnosticStatusWrapper:
@@ -222,6 +222,7 @@ class NodeDiagnostics(Updater):
         self._warn = re.compile(warn_pattern)
         self._last_counts: Dict[str, int] = {}
         self.topics: Dict[str, TopicStatus] = {}
+        self._tracks: Dict[str, Tuple[str, int, Dict[str, Any], int]] = {}
         if counters is not None:
             self.add('counters', self._counters_task)
         self.add('topics', self._topics_task)
@@ -236,6 +237,28 @@ class NodeDiagnostics(Updater):
         """Count one message of ``name``; with its header ``stamp`` also its age."""
         now_ns = self.node.get_clock().now().nanoseconds if stamp is not None else None
         self.topic(name).tick(stamp, now_ns)
+
+    def set_track_state(self, name: str, state: str, level: int = OK, **values: Any) -> None:
+        """Record the track state of object ``name`` (shown by the ``tracks`` task, which is
+        registered on first use): e.g. ``('peg', 'TRACKING', OK, quality=0.93)`` or
+        ``('peg', 'LOST', WARN, reason='inlier fraction 0.2 < 0.5')``."""
+        if 'tracks' not in self.tasks:
+            self.add('tracks', self._tracks_task)
+        self._tracks[name] = (state, int(level), values, self._clock_ns())
+
+    def _clock_ns(self) -> int:
+        return self.node.get_clock().now().nanoseconds
+
+    def _tracks_task(self, stat: DiagnosticStatusWrapper) -> None:
+        now = self._clock_ns()
+        stat.summary(OK, ', '.join(f'{n} {s[0]}' for n, s in self._tracks.items()))
+        for name, (state, level, values, t) in self._tracks.items():
+            stat.add(f'{name} state', state)
+            stat.add(f'{name} state age [s]', (now - t) * 1e-9)
+            for key, value in values.items():
+                stat.add(f'{name} {key}', value)
+            if level > OK:
+                stat.merge_summary(level, f'{name} {state}')
 
     def _counters_task(self, stat: DiagnosticStatusWrapper) -> None:
         counts = self._counters() if callable(self._counters) else self._counters

@@ -25,18 +25,20 @@ through the tree (no interpolation in time: on a real install use tf2_ros.Buffer
 
 from __future__ import annotations
 
+from pathlib import PurePath
 from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 from geometry_msgs.msg import PoseStamped, TransformStamped
 import numpy as np
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tf2_msgs.msg import TFMessage
 
-from stereo_manip_tools.conversions import pose_stamped_to_transform_stamped, \
-    transform_stamped_to_matrix
-from stereo_manip_tools.parameters import bool_descriptor
-from stereo_manip_tools.transforms import invert_transform
+from stereo_manip_tools.conversions import matrix_to_transform, \
+    pose_stamped_to_transform_stamped, transform_stamped_to_matrix
+from stereo_manip_tools.parameters import bool_descriptor, string_descriptor
+from stereo_manip_tools.transforms import invert_transform, pose_from_xyz_quaternion
 
 __all__ = [
     'TF_TOPIC',
@@ -47,6 +49,8 @@ __all__ = [
     'TransformBroadcaster',
     'StaticTransformBroadcaster',
     'PoseTfPublisher',
+    'object_frame',
+    'publish_camera_mount',
     'TransformListener',
     'FrameLookupError',
 ]
@@ -170,6 +174,57 @@ class PoseTfPublisher:
     def send_pose(self, pose: PoseStamped, child_frame: str) -> None:
         """Broadcast one pose as ``pose.header.frame_id -> child_frame``."""
         self.send([(pose, child_frame)])
+
+
+def object_frame(model: str) -> str:
+    """TF frame name of an object given by model name or mesh path (``/x/peg.obj`` -> ``peg``)."""
+    return PurePath(model).stem if ('/' in model or '.' in model) else model
+
+
+#: the optical frame of a camera body frame (x forward, z up) rotated to z forward, x right,
+#: y down (REP 103): the quaternion a mount transform ends with for a camera looking along +x
+BODY_TO_OPTICAL_QUATERNION = (-0.5, 0.5, -0.5, 0.5)
+
+
+def publish_camera_mount(node: Node) -> Optional[StaticTransformBroadcaster]:
+    """Declare the camera-mount parameters and publish the static transform they describe.
+
+    Parameters (read-only): ``camera_mount_parent`` (frame the camera is mounted on, e.g.
+    ``base_link`` or ``world``; empty, the default: no transform is published),
+    ``camera_frame`` (the camera's optical frame, the ``frame_id`` of its images; default
+    ``stereo_left_optical``), ``camera_mount_pose`` (``[x y z qx qy qz qw]`` of the optical frame
+    in the parent frame [m]; a camera looking along the parent's +x with no tilt has the
+    quaternion ``BODY_TO_OPTICAL_QUATERNION``).
+
+    :returns: the broadcaster (kept alive by the caller), or None when no parent is set or the
+        parameters are malformed (logged as an error naming what is wrong).
+    """
+    parent = node.declare_parameter('camera_mount_parent', '', string_descriptor(
+        'frame the camera is mounted on (static TF parent -> camera_frame); empty: no mount '
+        'transform', read_only=True)).value
+    child = node.declare_parameter('camera_frame', 'stereo_left_optical', string_descriptor(
+        "the camera's optical frame (frame_id of its images), child of the mount transform",
+        read_only=True)).value
+    values = node.declare_parameter(
+        'camera_mount_pose', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=True,
+            description='[x y z qx qy qz qw] of camera_frame in camera_mount_parent [m]')).value
+    if not parent:
+        return None
+    try:
+        T = pose_from_xyz_quaternion(values, 'camera_mount_pose')
+        if parent == child:
+            raise ValueError(f'camera_mount_parent equals camera_frame ({child!r})')
+    except ValueError as exc:
+        node.get_logger().error(f'no camera mount transform published: {exc}')
+        return None
+    t = TransformStamped(child_frame_id=child, transform=matrix_to_transform(T))
+    t.header.frame_id = parent
+    t.header.stamp = node.get_clock().now().to_msg()
+    broadcaster = StaticTransformBroadcaster(node)
+    broadcaster.send_transform(t)
+    node.get_logger().info(f'static camera mount {parent} -> {child} on /tf_static')
+    return broadcaster
 
 
 class FrameLookupError(KeyError):
