@@ -8,7 +8,8 @@
   (level, message, key/values), published as ``"<node name>: <task name>"``;
 - :class:`TopicStatus`: a frequency and latency monitor (``diagnostic_updater.FrequencyStatus``
   + ``TimeStampStatus`` in one): ``tick(stamp)`` where a message is published or received; it
-  reports the rate over the last period and over a window, and the age of the stamps
+  reports the rate over the last period and its mean over a window of periods, and the age of
+  the stamps
   (now - header stamp: the latency from the camera exposure when stamps are the camera's)
   as median / p95 / max over the period;
 - :class:`NodeDiagnostics`: the per-node hook: an Updater with a ``counters`` task that shows
@@ -188,7 +189,7 @@ class TopicStatus:
         window_rate = (self.count - c_old) / max((now - t_old) * 1e-9, 1e-9)
         p = self.name
         stat.add(f'{p} rate [Hz]', rate)
-        stat.add(f'{p} rate over {len(self._history) - 1} periods [Hz]', window_rate)
+        stat.add(f'{p} mean rate [Hz]', window_rate)      # over the last `window` periods
         stat.add(f'{p} count', self.count)
         ages = np.array(self._ages)
         if ages.size:

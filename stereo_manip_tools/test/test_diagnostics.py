@@ -46,7 +46,7 @@ def test_topic_status_rate_and_age():
     topic.run(stat)
     v = values(stat)
     assert float(v['points2 rate [Hz]']) == pytest.approx(2.0)
-    assert float(v['points2 rate over 2 periods [Hz]']) == pytest.approx(12 / 3.0)
+    assert float(v['points2 mean rate [Hz]']) == pytest.approx(12 / 3.0)
     assert 'points2 stamp age median [s]' not in v             # no stamps this period
     assert stat.level == WARN and '2.00 Hz < 4.00 Hz' in stat.message
 
