@@ -4,6 +4,7 @@ install. Imports are read from the sources (every import statement, lazy ones to
 
 import ast
 from pathlib import Path
+import sys
 import xml.etree.ElementTree as ET
 
 import pytest
@@ -18,9 +19,12 @@ WORKSPACE = set(PACKAGES) | {'stereo_manip_msgs'}
 SYSTEM_KEYS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'cv2': 'python3-opencv',
                'skimage': 'python3-skimage', 'matplotlib': 'python3-matplotlib',
                'mpl_toolkits': 'python3-matplotlib', 'open3d': 'python3-open3d-pip',
-               'pytest': 'python3-pytest', 'hypothesis': 'python3-hypothesis'}
+               'pytest': 'python3-pytest', 'hypothesis': 'python3-hypothesis',
+               'yaml': 'python3-yaml'}
 # modules with no rosdep key on noble: the manifest must say so in a comment naming pip
 PIP_ONLY = {'numba', 'rosbags'}
+# test helpers imported by name from their own folder
+LOCAL_MODULES = {p.stem for p in ROOT.glob('*/test/*.py')} | {'conftest'}
 ROS_PACKAGES = {'rclpy', 'launch', 'launch_ros', 'ament_index_python', 'rcl_interfaces',
                 'builtin_interfaces'}
 
@@ -37,11 +41,15 @@ def imported_modules(folder: Path) -> set:
 
 
 def required_key(module: str):
+    """The rosdep key of an imported top-level module; None: needs none (standard library,
+    a module of the same folder, or pip-only and checked separately)."""
     if module in SYSTEM_KEYS:
         return SYSTEM_KEYS[module]
     if module in WORKSPACE or module in ROS_PACKAGES or module.endswith('_msgs'):
         return module
-    return None          # standard library (or the package itself)
+    if module in sys.stdlib_module_names or module in PIP_ONLY or module in LOCAL_MODULES:
+        return None
+    return f'<no key known for {module!r}: add it to SYSTEM_KEYS>'
 
 
 def manifest(package: str):

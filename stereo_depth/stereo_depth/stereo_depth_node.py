@@ -212,7 +212,7 @@ class StereoDepthNode(Node):
         self._proc_times: list = []
         self._running = True
         self.diagnostics = NodeDiagnostics(self, lambda: {**self.counters, **{
-            f'rejected_{k}': v for k, v in self.rejected.items()}})
+            f'rejected_{k}': v for k, v in dict(self.rejected).items()}})  # copy: GIL-atomic
         self.camera_mount = publish_camera_mount(self)   # static TF parent -> optical frame
 
         self.pub_disparity = self.create_publisher(DisparityImage, 'disparity', 5)
