@@ -109,3 +109,36 @@ def test_broadcasters_and_listener_compose_chains():
     finally:
         shutdown_node(talker)
         shutdown_node(listener_node)
+
+
+@pytest.mark.ros
+def test_camera_mount_parameters():
+    """The mount is published as declared; a malformed one is logged and left out (no crash);
+    no parent, no transform."""
+    from rclpy import create_node
+    from stereo_manip_tools.tf import BODY_TO_OPTICAL_QUATERNION, publish_camera_mount
+    anchor = make_node()
+    try:
+        cases = [([Parameter('camera_mount_parent', value='base_link'),
+                   Parameter('camera_mount_pose',
+                             value=[0.1, 0.2, 0.3, *BODY_TO_OPTICAL_QUATERNION])], True),
+                 ([Parameter('camera_mount_parent', value='base_link'),
+                   Parameter('camera_mount_pose', value=[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])],
+                  False),
+                 ([Parameter('camera_mount_parent', value='base_link'),
+                   Parameter('camera_frame', value='base_link')], False),
+                 ([], False)]
+        for k, (overrides, published) in enumerate(cases):
+            node = create_node(f'mount_{k}', context=anchor.context,
+                               parameter_overrides=overrides)
+            try:
+                assert (publish_camera_mount(node) is not None) == published, overrides
+            finally:
+                node.destroy_node()
+        # the body -> optical rotation: optical z (forward) = body x, optical x (right) = -body y
+        from stereo_manip_tools.transforms import matrix_from_quaternion
+        R = matrix_from_quaternion(BODY_TO_OPTICAL_QUATERNION)
+        assert np.allclose(R[:, 2], [1, 0, 0]) and np.allclose(R[:, 0], [0, -1, 0])
+        assert np.allclose(R[:, 1], [0, 0, -1])
+    finally:
+        shutdown_node(anchor)
