@@ -101,12 +101,14 @@ def test_corrected_peg_on_tf_and_diagnostics_from_every_node(ros_node):
         def keys(name):
             return {kv.key for s in diagnostics.get(name, []) for kv in s.values}
         # rates and stamp ages of what went through the graph, the localizer's track states
-        assert spin_until(node, lambda: {'corrected_pose rate [Hz]',
-                                         'corrected_pose stamp age p95 [s]'}
+        assert spin_until(node, lambda: {'objects/peg/pose_corrected rate [Hz]',
+                                         'objects/peg/pose_corrected stamp age p95 [s]',
+                                         'objects/peg/pose rate [Hz]'}
                           <= keys('contact_correction'), 5.0), keys('contact_correction')
         assert {'points2 rate [Hz]', 'objects/peg/pose stamp age max [s]'} \
             <= keys('object_localizer')
-        assert 'disparity rate [Hz]' in keys('stereo_depth_node')
+        assert {'disparity rate [Hz]', 'left/image_rect mean rate [Hz]'} \
+            <= keys('stereo_depth_node')
         assert 'peg state' in keys('object_localizer')
     finally:
         for proc in procs:

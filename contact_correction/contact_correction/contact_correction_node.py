@@ -118,9 +118,10 @@ class ContactCorrectionNode(Node):
         self.counts: Dict[str, int] = {'received': 0, 'rejected': 0, 'no_fixed_pose': 0,
                                        'corrected': 0, 'passed_through': 0}
         self.track: deque = deque(maxlen=int(g('track_length').value))
-        self.tf = PoseTfPublisher(self)   # corrected pose on /tf as <moving>_corrected
-        self.diagnostics = NodeDiagnostics(self, self.counts)
         self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
+        self.tf = PoseTfPublisher(self)   # corrected_pose also on /tf as <moving>_corrected
+        self.tf.follow(self.pose_pub,
+                       lambda: f'{object_frame(g("moving_object").value)}_corrected')
         self.state_pub = self.create_publisher(ContactState, 'contact_state', 10)
         self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
         self.create_subscription(PoseStamped, 'moving_pose', self._on_moving,
@@ -133,6 +134,7 @@ class ContactCorrectionNode(Node):
             f'contact_correction: {g("moving_object").value} against '
             f'{g("fixed_object").value}, tolerance {g("tolerance").value} m, optimal '
             f'{g("optimal").value}')
+        self.diagnostics = NodeDiagnostics(self, self.counts)  # /diagnostics: topics, counters
 
     # --- parameters -----------------------------------------------------------------------
 
@@ -194,7 +196,6 @@ class ContactCorrectionNode(Node):
 
     def _on_moving(self, msg: PoseStamped) -> None:
         self.counts['received'] += 1
-        self.diagnostics.tick('moving_pose', msg.header.stamp)
         header = msg.header
         try:
             T, stamp, frame = pose_stamped_to_matrix(msg)
@@ -208,11 +209,7 @@ class ContactCorrectionNode(Node):
         self.counts['corrected' if result.corrected else 'passed_through'] += 1
         if not result.corrected:
             self.get_logger().debug(f'pose passed through: {result.status}')
-        corrected = PoseStamped(header=header, pose=matrix_to_pose(result.T_moving))
-        self.pose_pub.publish(corrected)
-        self.tf.send_pose(corrected, object_frame(self.get_parameter('moving_object').value)
-                          + '_corrected')
-        self.diagnostics.tick('corrected_pose', header.stamp)
+        self.pose_pub.publish(PoseStamped(header=header, pose=matrix_to_pose(result.T_moving)))
         state = contact_state_msg(result, Header(stamp=header.stamp, frame_id=self._fixed_frame()),
                                   self.get_parameter('moving_object').value,
                                   self.get_parameter('fixed_object').value)

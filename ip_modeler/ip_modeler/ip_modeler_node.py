@@ -92,7 +92,6 @@ class IpModelerNode(Node):
                                        'nonfinite_points_dropped': 0,
                                        'points_subsampled_away': 0}
         self._rng = np.random.default_rng(0)
-        self.diagnostics = NodeDiagnostics(self, self.counts)
         self.poly_pub = self.create_publisher(ImplicitPolynomial, 'implicit_polynomial', 10)
         self.marker_pub = self.create_publisher(Marker, 'zero_set_marker', 10)
         self.create_subscription(PointCloud2, 'cloud', self._on_cloud,
@@ -101,6 +100,7 @@ class IpModelerNode(Node):
         self.get_logger().info(
             f'ip_modeler: max degree {self.get_parameter("max_degree").value}, target RMS '
             f'{self.get_parameter("target_rms").value} m')
+        self.diagnostics = NodeDiagnostics(self, self.counts)  # /diagnostics: topics, counters
 
     # --- parameters -----------------------------------------------------------------------
 
@@ -183,7 +183,6 @@ class IpModelerNode(Node):
             return
         self.poly_pub.publish(poly)
         self.marker_pub.publish(marker)
-        self.diagnostics.tick('implicit_polynomial', msg.header.stamp)
         self.get_logger().info(
             f'fitted degree {poly.degree} to {poly.point_count} points: RMS distance '
             f'{poly.rms_distance * 1e3:.2f} mm, max {poly.max_distance * 1e3:.2f} mm')

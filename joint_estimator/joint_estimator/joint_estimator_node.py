@@ -165,6 +165,9 @@ class JointEstimatorNode(Node):
         self._last_b_frame = ''
         self.estimate_pub = self.create_publisher(JointEstimate, 'joint_estimate', 10)
         self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
+        self.tf = PoseTfPublisher(self)   # corrected_pose also on /tf as <link_a>_corrected
+        self.tf.follow(self.pose_pub, lambda: object_frame(
+            self.get_parameter('link_a_frame').value) + '_corrected')
         self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
         self.marker_pub = self.create_publisher(Marker, 'joint_marker', 10)
         self.create_service(EstimateJoint, 'estimate_joint', self._on_service)
@@ -184,12 +187,11 @@ class JointEstimatorNode(Node):
                                      lambda m: self._on_link(m, 'a'), qos)
             self.create_subscription(PoseStamped, 'link_b_pose',
                                      lambda m: self._on_link(m, 'b'), qos)
-        self.tf = PoseTfPublisher(self)   # corrected link A in link B: <link_a_frame>_corrected
-        self.diagnostics = NodeDiagnostics(self, lambda: {**self.counts, **{
-            f'unpaired_{k}': v for k, v in (self.sync.dropped if self.sync else {}).items()}})
         self.get_logger().info(f'joint_estimator: input {mode}, window '
                                f'{self.window.maxlen}, joint type '
                                f'{self.get_parameter("joint_type").value}')
+        self.diagnostics = NodeDiagnostics(self, lambda: {**self.counts, **{  # /diagnostics
+            f'unpaired_{k}': v for k, v in (self.sync.dropped if self.sync else {}).items()}})
 
     # --- parameters -----------------------------------------------------------------------
 
@@ -255,7 +257,6 @@ class JointEstimatorNode(Node):
         self._add(T, stamp)
 
     def _add(self, T: np.ndarray, stamp: int) -> None:
-        self.diagnostics.tick('relative_pose', ns_to_stamp(stamp))
         if self.window and stamp <= self.window[-1][0]:
             self._reject('pose', f'stamp {stamp} ns is not after the previous one '
                          f'({self.window[-1][0]} ns); stamps must increase')
@@ -291,11 +292,8 @@ class JointEstimatorNode(Node):
                                 header.frame_id)
         msg.status = f'{msg.status}; {self._dropped_summary()}'
         self.estimate_pub.publish(msg)
-        corrected = PoseStamped(header=header, pose=matrix_to_pose(est.best.corrected[-1]))
-        self.pose_pub.publish(corrected)
-        self.tf.send_pose(corrected, object_frame(self.get_parameter('link_a_frame').value)
-                          + '_corrected')
-        self.diagnostics.tick('joint_estimate', header.stamp)
+        self.pose_pub.publish(PoseStamped(header=header,
+                                          pose=matrix_to_pose(est.best.corrected[-1])))
         self.track_pub.publish(matrices_to_path(est.best.corrected, header.frame_id, stamps))
         self.marker_pub.publish(estimation_to_marker(est, header))
 

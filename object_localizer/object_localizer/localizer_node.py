@@ -92,13 +92,15 @@ class ObjectLocalizerNode(Node):
             self.cloud_pubs[name] = self.create_publisher(PointCloud2, f'objects/{name}/cloud',
                                                           10)
         self.counts = {'received': 0, 'rejected': 0, 'not_found': 0}
-        self.tf = PoseTfPublisher(self)   # raw poses on /tf, child frame = model name
-        self.diagnostics = NodeDiagnostics(self, self.counts)
+        self.tf = PoseTfPublisher(self)   # every published pose also on /tf, child = model name
+        for name, pub in self.pose_pubs.items():
+            self.tf.follow(pub, name)
         # A full-frame cloud is megabytes: best-effort DDS drops such samples whole when one
         # fragment is lost, so the default is reliable with a short queue (newest kept).
         self.create_subscription(PointCloud2, 'points2', self._on_cloud,
                                  input_qos_profile(self.get_parameter('input_qos').value))
         self.get_logger().info(f'localising {", ".join(self.trackers)} in points2')
+        self.diagnostics = NodeDiagnostics(self, self.counts)  # /diagnostics: topics, counters
 
     _SETTING_OF_PARAMETER = {'max_correspondence_distance': 'max_distance',
                              'loss_scale': 'loss_scale',
@@ -123,7 +125,6 @@ class ObjectLocalizerNode(Node):
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         self.counts['received'] += 1
-        self.diagnostics.tick('points2', msg.header.stamp)
         try:
             points = pointcloud2_to_array(msg)
         except ValueError as exc:
@@ -147,8 +148,6 @@ class ObjectLocalizerNode(Node):
                 continue
             pose = PoseStamped(header=msg.header, pose=matrix_to_pose(result.pose))
             self.pose_pubs[name].publish(pose)
-            self.tf.send_pose(pose, name)
-            self.diagnostics.tick(f'objects/{name}/pose', msg.header.stamp)
             self.diagnostics.set_track_state(name, 'TRACKING')
             segment = segment_object_points(points, tracker.model, result.pose,
                                             self.get_parameter('segment_margin').value)

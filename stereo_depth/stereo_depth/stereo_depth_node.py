@@ -211,9 +211,6 @@ class StereoDepthNode(Node):
         self._last_warning: Dict[str, float] = {}
         self._proc_times: list = []
         self._running = True
-        self.diagnostics = NodeDiagnostics(self, lambda: {**self.counters, **{
-            f'rejected_{k}': v for k, v in dict(self.rejected).items()}})  # copy: GIL-atomic
-        self.camera_mount = publish_camera_mount(self)   # static TF parent -> optical frame
 
         self.pub_disparity = self.create_publisher(DisparityImage, 'disparity', 5)
         self.pub_depth = self.create_publisher(Image, 'depth', 5)
@@ -230,6 +227,9 @@ class StereoDepthNode(Node):
         self._stats_t0 = time.monotonic()
         self._stats_processed = 0
         self.create_timer(float(self._params['stats_period']), self._log_stats)
+        self.camera_mount = publish_camera_mount(self)   # static TF parent -> optical frame
+        self.diagnostics = NodeDiagnostics(self, lambda: {**self.counters, **{  # /diagnostics
+            f'rejected_{k}': v for k, v in dict(self.rejected).items()}})
         self._worker = threading.Thread(target=self._work, name='stereo_depth_worker',
                                         daemon=True)
         self._worker.start()
@@ -366,7 +366,6 @@ class StereoDepthNode(Node):
             self.counters['processed'] += 1
             self._proc_times.append(time.perf_counter() - t0)
         self.pub_disparity.publish(dmsg)
-        self.diagnostics.tick('disparity', header.stamp)
         self.pub_depth.publish(numpy_to_image(depth, '32FC1', header))
         if params['publish_points']:
             pts = depth_to_points(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'])

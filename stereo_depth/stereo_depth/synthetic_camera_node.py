@@ -161,15 +161,15 @@ class SyntheticCameraNode(Node):
         self._pub_disp = self.create_publisher(DisparityImage, 'disparity_truth', 5)
         self._pub_occ = self.create_publisher(Image, 'occlusion_truth', 5)
         self._rebuild()  # raises ValueError/FileNotFoundError with a clear message
-        self.diagnostics = NodeDiagnostics(self, lambda: {
-            'frames_published': self.frames_published, 'late_frames': self.late_frames,
-            'render_errors': self.render_errors})
         self._timer = None
         if self._values['trigger']:
             self.create_subscription(Empty, 'trigger', lambda _msg: self._tick(), 10)
         else:
             self._timer = self.create_timer(1.0 / float(self._values['rate']), self._tick)
         self.get_logger().info(self._describe())
+        self.diagnostics = NodeDiagnostics(self, lambda: {  # /diagnostics: topics, counters
+            'frames_published': self.frames_published, 'late_frames': self.late_frames,
+            'render_errors': self.render_errors})
 
     # --- parameters -----------------------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -295,7 +295,6 @@ class SyntheticCameraNode(Node):
         info_l, info_r = self._infos(hl, hr)
         self._pub_left.publish(numpy_to_image(left, enc, hl))
         self._pub_right.publish(numpy_to_image(right, enc, hr))
-        self.diagnostics.tick('stereo pairs', hl.stamp)
         self._pub_info_l.publish(info_l)
         self._pub_info_r.publish(info_r)
         if v['ground_truth']:

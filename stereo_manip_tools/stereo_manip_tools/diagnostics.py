@@ -15,8 +15,12 @@
 - :class:`NodeDiagnostics`: the per-node hook: an Updater with a ``counters`` task that shows
   a node's counter dict and warns while a rejection counter grows, plus topic monitors.
 
-A node's hook is two lines: ``self.diagnostics = NodeDiagnostics(self, self.counts)`` in
-``__init__`` and ``self.diagnostics.tick('corrected_pose', header.stamp)`` where it publishes.
+A node's hook is one line at the end of ``__init__``:
+``self.diagnostics = NodeDiagnostics(self, self.counts)``. It follows every publisher and
+subscription the node has by then (rate and stamp age of each topic, without a line in the
+callbacks), and turns the ``stereo_manip_msgs/TrackStatus`` messages the node publishes into the
+``tracks`` task. :meth:`NodeDiagnostics.tick` and :meth:`NodeDiagnostics.set_track_state` are
+there for what no topic shows.
 """
 
 from __future__ import annotations
@@ -24,12 +28,15 @@ from __future__ import annotations
 from collections import deque
 import re
 import time
-from typing import Any, Callable, Deque, Dict, List, Mapping, Optional, Tuple, Union
+from typing import Any, Callable, Deque, Dict, List, Mapping, Optional, Sequence, Tuple, \
+    Union
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.subscription import Subscription
 
 from stereo_manip_tools.conversions import stamp_to_ns
 
@@ -45,6 +52,7 @@ __all__ = [
     'TopicStatus',
     'NodeDiagnostics',
     'DEFAULT_WARN_PATTERN',
+    'INFRASTRUCTURE_TOPICS',
 ]
 
 DIAGNOSTICS_TOPIC = '/diagnostics'
@@ -52,6 +60,8 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
 
 #: counter names that count lost or refused input: their growth makes the counters task WARN
+#: topics :meth:`NodeDiagnostics.follow_all` leaves out
+INFRASTRUCTURE_TOPICS = ('/rosout', '/parameter_events', '/diagnostics', '/tf', '/tf_static')
 DEFAULT_WARN_PATTERN = r'reject|fail|drop|not_found|unpaired|invalid|error|no_fixed|timed_out|late'
 
 
@@ -213,20 +223,70 @@ class NodeDiagnostics(Updater):
     :class:`TopicStatus` per name passed to :meth:`tick`), and any added with :meth:`add`.
 
     :param counters: the node's own counter dict (kept by reference), or a callable returning one.
+    :param follow: :meth:`follow_all` the node's publishers and subscriptions at construction
+        (create it at the end of ``__init__``).
     """
 
     def __init__(self, node: Node, counters: Optional[Counters] = None,
                  period: float = 1.0, warn_pattern: str = DEFAULT_WARN_PATTERN,
-                 hardware_id: str = '') -> None:
+                 hardware_id: str = '', follow: bool = True) -> None:
         super().__init__(node, period, hardware_id)
         self._counters = counters
         self._warn = re.compile(warn_pattern)
         self._last_counts: Dict[str, int] = {}
         self.topics: Dict[str, TopicStatus] = {}
         self._tracks: Dict[str, Tuple[str, int, Dict[str, Any], int]] = {}
+        self._followed: set = set()
         if counters is not None:
             self.add('counters', self._counters_task)
         self.add('topics', self._topics_task)
+        if follow:
+            self.follow_all()
+
+    def follow(self, entity: Union[Publisher, Subscription], name: str = '') -> None:
+        """Tick ``name`` (default: the topic name) for every message ``entity`` -- a publisher or
+        subscription of this node -- publishes or receives (by wrapping ``publish`` or the
+        callback). A published ``TrackStatus`` (fields ``object_name``, ``state``, ``reason``)
+        also sets that object's track state."""
+        if not isinstance(entity, (Publisher, Subscription)):
+            raise TypeError(f'cannot follow a {type(entity).__name__}')
+        name = name or entity.topic_name.lstrip('/')
+        self.topic(name)            # listed from now on, at 0 Hz while nothing passes
+        self._followed.add(id(entity))
+        if isinstance(entity, Publisher):
+            publish = entity.publish
+
+            def publish_and_tick(msg: Any) -> None:
+                publish(msg)
+                self._observe(name, msg)
+            entity.publish = publish_and_tick
+        else:
+            callback = entity.callback
+
+            def tick_and_call(msg: Any) -> Any:
+                self._observe(name, msg)
+                return callback(msg)
+            entity.callback = tick_and_call
+
+    def follow_all(self, exclude: Sequence[str] = INFRASTRUCTURE_TOPICS) -> None:
+        """:meth:`follow` every publisher and subscription the node has now (topic names)."""
+        for entity in list(self.node.publishers) + list(self.node.subscriptions):
+            if entity.topic_name not in exclude and id(entity) not in self._followed:
+                self.follow(entity)
+
+    def _observe(self, name: str, msg: Any) -> None:
+        header = getattr(msg, 'header', None)
+        self.tick(name, getattr(header, 'stamp', None))
+        if hasattr(msg, 'object_name') and hasattr(msg, 'state'):      # TrackStatus
+            state = next((k for k in dir(type(msg)) if k.isupper() and not k.startswith('_')
+                          and getattr(type(msg), k) == msg.state), str(msg.state))
+            values = {k: round(float(getattr(msg, k)), 4) for k in
+                      ('quality', 'inlier_fraction', 'visible_residual', 'prediction_error')
+                      if hasattr(msg, k)}
+            reason = getattr(msg, 'reason', '')
+            self.set_track_state(msg.object_name, state,
+                                 WARN if state in ('LOST',) else OK,
+                                 **values, **({'reason': reason} if reason else {}))
 
     def topic(self, name: str, min_rate: float = 0.0, max_age: float = 0.0) -> TopicStatus:
         """The monitor of ``name`` (created on first use)."""

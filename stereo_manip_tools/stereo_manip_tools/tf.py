@@ -26,12 +26,13 @@ through the tree (no interpolation in time: on a real install use tf2_ros.Buffer
 from __future__ import annotations
 
 from pathlib import PurePath
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 from geometry_msgs.msg import PoseStamped, TransformStamped
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tf2_msgs.msg import TFMessage
 
@@ -170,6 +171,16 @@ class PoseTfPublisher:
                 self._broadcaster = TransformBroadcaster(self._node)
             self._broadcaster.send_transform(transforms)
             self.sent += len(transforms)
+
+    def follow(self, publisher: Publisher, child_frame: Union[str, Callable[[], str]]) -> None:
+        """Broadcast every PoseStamped ``publisher`` publishes, as ``child_frame`` (a name or a
+        function giving it at publish time), right after the pose itself is published."""
+        publish = publisher.publish
+
+        def publish_and_broadcast(msg: PoseStamped) -> None:
+            publish(msg)
+            self.send_pose(msg, child_frame() if callable(child_frame) else child_frame)
+        publisher.publish = publish_and_broadcast
 
     def send_pose(self, pose: PoseStamped, child_frame: str) -> None:
         """Broadcast one pose as ``pose.header.frame_id -> child_frame``."""

@@ -104,3 +104,47 @@ def test_node_diagnostics_publishes_counters_topics_and_task_errors():
     finally:
         shutdown_node(node)
         shutdown_node(observer)
+
+
+class FakeTrackStatus:
+    """The fields of stereo_manip_msgs/TrackStatus that the diagnostics read."""
+    ACQUIRING, TRACKING, LOST, STATIC = 0, 1, 2, 3
+
+    def __init__(self, name, state, reason=''):
+        self.object_name, self.state, self.reason = name, state, reason
+        self.quality, self.inlier_fraction = 0.25, 0.5
+
+
+@pytest.mark.ros
+def test_follow_counts_published_and_received_messages_and_track_states():
+    from geometry_msgs.msg import PoseStamped
+    node = make_node('follower')
+    try:
+        pub = node.create_publisher(PoseStamped, 'objects/peg/pose', 10)
+        got = []
+        node.create_subscription(PoseStamped, 'objects/peg/pose', got.append, 10)
+        diag = NodeDiagnostics(node, {'received': 0})           # follows both at construction
+        assert set(diag.topics) == {'objects/peg/pose'}
+        for _ in range(3):
+            msg = PoseStamped()
+            msg.header.stamp = node.get_clock().now().to_msg()
+            pub.publish(msg)
+        assert spin_until(node, lambda: len(got) == 3, 10)
+        # 3 published + 3 received, both ticked under the topic's name
+        assert diag.topics['objects/peg/pose'].count == 6
+        stats = {s.name: s for s in diag.run_tasks()}
+        v = dict(stats['follower: topics'].values)
+        assert v['objects/peg/pose count'] == '6'
+        assert float(v['objects/peg/pose stamp age max [s]']) < 10.0
+        diag._observe('objects/peg/status', FakeTrackStatus('peg', FakeTrackStatus.LOST,
+                                                            'occluded'))
+        tracks = {s.name: s for s in diag.run_tasks()}['follower: tracks']
+        assert tracks.level == WARN and 'peg LOST' in tracks.message
+        assert dict(tracks.values)['peg reason'] == 'occluded'
+        diag._observe('objects/peg/status', FakeTrackStatus('peg', FakeTrackStatus.TRACKING))
+        tracks = {s.name: s for s in diag.run_tasks()}['follower: tracks']
+        assert tracks.level == OK and dict(tracks.values)['peg state'] == 'TRACKING'
+        with pytest.raises(TypeError):
+            diag.follow(object())
+    finally:
+        shutdown_node(node)
