@@ -5,6 +5,7 @@ bootstrap:
 	@scripts/bootstrap.sh
 
 test: bootstrap
+	@scripts/noble_venv.sh
 	@scripts/run_tests.sh
 
 demo: bootstrap

@@ -51,15 +51,25 @@ if [ "$(cat "$VENV/.requirements.sha256" 2>/dev/null)" != "$req_hash" ]; then
   echo "$req_hash" > "$VENV/.requirements.sha256"
 fi
 
+CALLER_AMENT_PREFIX_PATH=${AMENT_PREFIX_PATH:-}
 export AMENT_PREFIX_PATH=$VENV CMAKE_PREFIX_PATH=$VENV
 STAMP=$ROOT/install/.bootstrap_build_stamp
 PKG_DIRS=(msgs stereo_manip_tools stereo_depth object_localizer contact_correction joint_estimator ip_modeler
           stereo_manip_bringup)
+# Interfaces a ROS install has but the PyPI wheels lack (tf2_msgs): ros_compat/ holds stand-ins
+# with the upstream names and definitions, behind a COLCON_IGNORE so that `colcon build` on a
+# real install never sees them; they are built here only when no installed prefix has them.
+# shellcheck source=compat_packages.sh
+. "$ROOT/scripts/compat_packages.sh"
+mapfile -t COMPAT_DIRS < <(compat_package_dirs "$ROOT" "$VENV:$CALLER_AMENT_PREFIX_PATH")
+for d in "${COMPAT_DIRS[@]}"; do say "no installed $(basename "$d"): building the stand-in $d"; done
+PKG_DIRS+=("${COMPAT_DIRS[@]}")
 changed=1
 if [ -f "$STAMP" ]; then
   changed=$(cd "$ROOT" && find "${PKG_DIRS[@]}" -newer "$STAMP" -type f \
     -not -path '*/__pycache__/*' -not -name '*.pyc' -not -path '*/.pytest_cache/*' \
     -not -path '*/test/*' | head -1 | wc -l)
+  for d in "${COMPAT_DIRS[@]}"; do [ -d "$ROOT/install/$(basename "$d")" ] || changed=1; done
 fi
 if [ "$changed" != 0 ]; then
   say 'colcon build'

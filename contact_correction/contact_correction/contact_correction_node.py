@@ -49,6 +49,8 @@ from contact_correction.recognition import RecognitionOptions
 from contact_correction.trajectory import ContactCorrector, correct_trajectory
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_stamped_to_matrix
+from stereo_manip_tools.diagnostics import NodeDiagnostics
+from stereo_manip_tools.tf import object_frame, PoseTfPublisher
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 from stereo_manip_tools.parameters import bool_descriptor as _bool, \
     float_descriptor as _float, int_descriptor as _int, string_descriptor as _string
@@ -181,6 +183,9 @@ class ContactCorrectionNode(Node):
         self._units_warned = False
         self._last_stamp: int | None = None
         self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
+        self.tf = PoseTfPublisher(self)   # corrected_pose also on /tf as <moving>_corrected
+        self.tf.follow(self.pose_pub,
+                       lambda: f'{object_frame(g("moving_object").value)}_corrected')
         self.state_pub = self.create_publisher(ContactState, 'contact_state', 10)
         self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
         self.create_subscription(PoseStamped, 'moving_pose', self._on_moving,
@@ -193,6 +198,7 @@ class ContactCorrectionNode(Node):
             f'contact_correction: {g("moving_object").value} against '
             f'{g("fixed_object").value}, tolerance {g("tolerance").value} m, optimal '
             f'{g("optimal").value}')
+        self.diagnostics = NodeDiagnostics(self, self.counts)  # /diagnostics: topics, counters
 
     # --- parameters -----------------------------------------------------------------------
 

@@ -58,7 +58,12 @@ from typing import Dict, List, Optional
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, qr, solve_triangular
 from scipy.linalg.blas import dgemm, dsyrk, dtrsm
-from scipy.linalg.lapack import dpotrf, dtrcon
+from scipy.linalg.lapack import dpotrf
+
+try:
+    from scipy.linalg.lapack import dtrcon
+except ImportError:     # SciPy < 1.12 (Ubuntu 24.04 ships 1.11): same estimate, in numpy
+    from ip_modeler.trcon import dtrcon
 
 from ip_modeler.monomials import degree_slice, monomial_count, monomial_shift_indices
 

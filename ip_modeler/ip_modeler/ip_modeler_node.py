@@ -38,6 +38,7 @@ from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_se
 from ip_modeler.fitting import DEFAULT_3L_OFFSET, estimate_normals, fit_implicit_polynomial, \
     MAX_SUPPORTED_DEGREE
 from ip_modeler.incremental_qr import STABILIZATION_MODES
+from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
     input_qos_descriptor, input_qos_profile, int_descriptor as _int
 
@@ -99,6 +100,7 @@ class IpModelerNode(Node):
         self.get_logger().info(
             f'ip_modeler: max degree {self.get_parameter("max_degree").value}, target RMS '
             f'{self.get_parameter("target_rms").value} m')
+        self.diagnostics = NodeDiagnostics(self, self.counts)  # /diagnostics: topics, counters
 
     # --- parameters -----------------------------------------------------------------------
 

@@ -44,7 +44,9 @@ from joint_estimator.common import JointType, relative_track
 from joint_estimator.selection import estimate_joint, JointEstimation
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     numpy_to_point, numpy_to_vector3, path_to_matrices, pose_stamped_to_matrix
+from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.sync import StampSynchronizer
+from stereo_manip_tools.tf import object_frame, PoseTfPublisher
 from stereo_manip_tools.parameters import (
     float_descriptor as _float, int_descriptor as _int, string_descriptor as _string)
 
@@ -163,6 +165,9 @@ class JointEstimatorNode(Node):
         self._last_b_frame = ''
         self.estimate_pub = self.create_publisher(JointEstimate, 'joint_estimate', 10)
         self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
+        self.tf = PoseTfPublisher(self)   # corrected_pose also on /tf as <link_a>_corrected
+        self.tf.follow(self.pose_pub, lambda: object_frame(
+            self.get_parameter('link_a_frame').value) + '_corrected')
         self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
         self.marker_pub = self.create_publisher(Marker, 'joint_marker', 10)
         self.create_service(EstimateJoint, 'estimate_joint', self._on_service)
@@ -185,6 +190,8 @@ class JointEstimatorNode(Node):
         self.get_logger().info(f'joint_estimator: input {mode}, window '
                                f'{self.window.maxlen}, joint type '
                                f'{self.get_parameter("joint_type").value}')
+        self.diagnostics = NodeDiagnostics(self, lambda: {**self.counts, **{  # /diagnostics
+            f'unpaired_{k}': v for k, v in (self.sync.dropped if self.sync else {}).items()}})
 
     # --- parameters -----------------------------------------------------------------------
 

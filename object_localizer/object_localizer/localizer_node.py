@@ -28,6 +28,8 @@ from object_localizer.localization import prepare_model, segment_object_points
 from object_localizer.tracking import ObjectTracker, TrackerSettings
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, \
     pointcloud2_to_array, stamp_to_ns, xyz_to_pointcloud2
+from stereo_manip_tools.diagnostics import NodeDiagnostics, WARN
+from stereo_manip_tools.tf import PoseTfPublisher
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
@@ -90,11 +92,15 @@ class ObjectLocalizerNode(Node):
             self.cloud_pubs[name] = self.create_publisher(PointCloud2, f'objects/{name}/cloud',
                                                           10)
         self.counts = {'received': 0, 'rejected': 0, 'not_found': 0}
+        self.tf = PoseTfPublisher(self)   # every published pose also on /tf, child = model name
+        for name, pub in self.pose_pubs.items():
+            self.tf.follow(pub, name)
         # A full-frame cloud is megabytes: best-effort DDS drops such samples whole when one
         # fragment is lost, so the default is reliable with a short queue (newest kept).
         self.create_subscription(PointCloud2, 'points2', self._on_cloud,
                                  input_qos_profile(self.get_parameter('input_qos').value))
         self.get_logger().info(f'localising {", ".join(self.trackers)} in points2')
+        self.diagnostics = NodeDiagnostics(self, self.counts)  # /diagnostics: topics, counters
 
     _SETTING_OF_PARAMETER = {'max_correspondence_distance': 'max_distance',
                              'loss_scale': 'loss_scale',
@@ -136,11 +142,13 @@ class ObjectLocalizerNode(Node):
                 continue
             if result is None:
                 self.counts['not_found'] += 1
+                self.diagnostics.set_track_state(name, 'LOST', WARN, reason='not found')
                 self.get_logger().warning(f'{name} not found (inlier fraction below threshold;'
                                           f' {self.counts["not_found"]} so far)')
                 continue
             pose = PoseStamped(header=msg.header, pose=matrix_to_pose(result.pose))
             self.pose_pubs[name].publish(pose)
+            self.diagnostics.set_track_state(name, 'TRACKING')
             segment = segment_object_points(points, tracker.model, result.pose,
                                             self.get_parameter('segment_margin').value)
             self.cloud_pubs[name].publish(xyz_to_pointcloud2(segment, msg.header))

@@ -43,7 +43,9 @@ from stereo_manip_tools.conversions import (CameraInfoError, image_to_numpy, num
 from stereo_manip_tools.parameters import bool_descriptor, float_descriptor, \
     INPUT_QOS_CHOICES, input_qos_descriptor, input_qos_profile, int_descriptor, \
     string_descriptor
+from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.sync import StampSynchronizer
+from stereo_manip_tools.tf import publish_camera_mount
 
 __all__ = ['StereoDepthNode', 'prepare_pair', 'stereo_geometry', 'main', 'SUPPORTED_ENCODINGS']
 
@@ -225,6 +227,9 @@ class StereoDepthNode(Node):
         self._stats_t0 = time.monotonic()
         self._stats_processed = 0
         self.create_timer(float(self._params['stats_period']), self._log_stats)
+        self.camera_mount = publish_camera_mount(self)   # static TF parent -> optical frame
+        self.diagnostics = NodeDiagnostics(self, lambda: {**self.counters, **{  # /diagnostics
+            f'rejected_{k}': v for k, v in dict(self.rejected).items()}})
         self._worker = threading.Thread(target=self._work, name='stereo_depth_worker',
                                         daemon=True)
         self._worker.start()

@@ -39,6 +39,7 @@ from stereo_msgs.msg import DisparityImage
 from stereo_manip_tools.conversions import (
     camera_info_from_parameters, matrix_to_pose_stamped, numpy_to_image,
     StereoCameraParameters)
+from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_depth.synthetic import (
     load_motorcycle, load_stereo_files, RealStereoPair, RenderOptions, SCENES, StereoCamera,
     SyntheticStereo)
@@ -166,6 +167,9 @@ class SyntheticCameraNode(Node):
         else:
             self._timer = self.create_timer(1.0 / float(self._values['rate']), self._tick)
         self.get_logger().info(self._describe())
+        self.diagnostics = NodeDiagnostics(self, lambda: {  # /diagnostics: topics, counters
+            'frames_published': self.frames_published, 'late_frames': self.late_frames,
+            'render_errors': self.render_errors})
 
     # --- parameters -----------------------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:

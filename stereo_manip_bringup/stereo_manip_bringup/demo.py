@@ -266,7 +266,8 @@ STAGES: Dict[str, Callable[[], Stage]] = {
         [_camera('revolute_pair', 3), _stereo(),
          _localizer('revolute_pair', ['link_base', 'link_arm']),
          NodeSpec('joint_estimator', 'joint_estimator_node', 'joint_estimator',
-                  {'min_poses': 10, 'estimate_every': 2},
+                  {'min_poses': 10, 'estimate_every': 2,
+                   'link_a_frame': 'link_arm', 'link_b_frame': 'link_base'},  # TF frames
                   {'link_a_pose': '/objects/link_arm/pose',
                    'link_b_pose': '/objects/link_base/pose'})],
         {'/objects/link_base/pose_truth': 'geometry_msgs/msg/PoseStamped',

@@ -14,7 +14,8 @@ import sys
 from typing import Iterable, Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, Vector3
+from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, \
+    TransformStamped, Vector3
 from nav_msgs.msg import Path
 import numpy as np
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
@@ -36,6 +37,8 @@ __all__ = [
     'matrix_to_transform',
     'pose_stamped_to_matrix',
     'matrix_to_pose_stamped',
+    'pose_stamped_to_transform_stamped',
+    'transform_stamped_to_matrix',
     'path_to_matrices',
     'matrices_to_path',
     'vector3_to_numpy',
@@ -291,6 +294,31 @@ def pose_stamped_to_matrix(msg: PoseStamped) -> Tuple[np.ndarray, int, str]:
 def matrix_to_pose_stamped(T: np.ndarray, header: Header) -> PoseStamped:
     """4x4 transform and header to ``PoseStamped``."""
     return PoseStamped(header=header, pose=matrix_to_pose(T))
+
+
+def pose_stamped_to_transform_stamped(msg: PoseStamped, child_frame: str) -> TransformStamped:
+    """``PoseStamped`` of a frame to the TF transform ``msg.header.frame_id -> child_frame``.
+
+    The pose of ``child_frame`` in the header's frame is the transform that maps child
+    coordinates into the parent (tf2 convention); stamp and parent frame are the header's. The
+    quaternion is validated and normalised (``ValueError`` for NaN or zero).
+    """
+    if not child_frame:
+        raise ValueError('empty child frame')
+    T = pose_to_matrix(msg.pose)
+    return TransformStamped(header=msg.header, child_frame_id=child_frame,
+                            transform=matrix_to_transform(T))
+
+
+def transform_stamped_to_matrix(msg: TransformStamped) -> Tuple[np.ndarray, int, str, str]:
+    """``TransformStamped`` to ``(T 4x4 child -> parent, stamp_ns, parent frame, child frame)``.
+
+    :raises ValueError: zero or non-finite quaternion, non-finite translation.
+    """
+    T = transform_to_matrix(msg.transform)
+    if not np.all(np.isfinite(T)):
+        raise ValueError('transform has a non-finite translation')
+    return T, stamp_to_ns(msg.header.stamp), msg.header.frame_id, msg.child_frame_id
 
 
 def path_to_matrices(path: Path) -> Tuple[np.ndarray, np.ndarray]:

@@ -23,6 +23,7 @@ __all__ = [
     'matrix_from_quaternion',
     'minimal_rotation_between',
     'check_transform',
+    'pose_from_xyz_quaternion',
 ]
 
 
@@ -172,3 +173,22 @@ def check_transform(T: np.ndarray, name: str = 'pose', tol: float = 1e-6) -> np.
     if not is_rotation_matrix(T[:3, :3], tol):
         raise ValueError(f'{name}: rotation block is not orthonormal with det +1 (tol {tol})')
     return T
+
+
+def pose_from_xyz_quaternion(values, name: str = 'pose') -> np.ndarray:
+    """4x4 pose of the parameter form ``[x, y, z, qx, qy, qz, qw]`` (metres; quaternion in ROS
+    order, normalised here).
+
+    :raises ValueError: naming ``name``: not 7 numbers, non-finite, or a zero quaternion.
+    """
+    try:
+        v = np.asarray(list(values), dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'{name} must be 7 numbers [x y z qx qy qz qw]: {exc}') from None
+    if v.shape != (7,) or not np.all(np.isfinite(v)):
+        raise ValueError(f'{name} must be 7 finite numbers [x y z qx qy qz qw], '
+                         f'got {v.tolist()}')
+    try:
+        return make_transform(matrix_from_quaternion(v[3:]), v[:3])
+    except ValueError as exc:
+        raise ValueError(f'{name}: {exc}') from None

@@ -78,7 +78,7 @@ def test_bad_input_exits_nonzero_without_traceback(tmp_path, args, expected):
         writer.write('/s', 1, serialize_message(String(data='x')))
     # A bag whose topic type has no installed interface package (rosbags knows the type).
     with BagWriter(tmp_path / 'odd') as writer:
-        writer.add_topic('/odd', 'tf2_msgs/msg/TFMessage')
+        writer.add_topic('/odd', 'statistics_msgs/msg/MetricsMessage')
         writer.write('/odd', 1, b'\x00\x01\x00\x00\x00\x00\x00\x00')
     exe, *rest = [a.format(tmp=tmp_path, bag=tmp_path / 'bag', odd=tmp_path / 'odd')
                   for a in args]
