@@ -110,7 +110,7 @@ def run_method(method, model, points, camera, seed):
     t0 = time.perf_counter()
     if method in ('ppf', 'fpfh'):
         scene = prepare_acquisition_scene(points, camera=camera)
-        hyps = acquire_object(model, scene, method=method, seed=seed)
+        hyps = acquire_object(model, scene, method=method, seed=seed, time_budget_s=float('inf'))
         pose = hyps[0].pose if hyps else np.eye(4)
         score = hyps[0].score if hyps else 0.0
     elif method == 'localize':
