@@ -18,7 +18,11 @@ Methods, all on the same clouds in this run:
 
 Error: symmetry-aware (object_localizer.symmetry): centroid translation error and the smallest
 rotation error over the model's symmetry group (continuous axes included); success = within
-2 mm and 2 deg. ADD-S is reported as well. Times: wall time per object including the scene
+2 mm and 2 deg. ADD-S is reported as well. ``link_base`` and ``link_arm`` are the same brick
+(identical meshes up to their frames): in the revolute scene, a pose on the other brick is a
+correct detection of that shape that no method can attribute from geometry alone, so those two
+are scored against the nearer of the two truths (``success``); ``success_strict`` scores
+against the named object only, and both rates are reported. Times: wall time per object including the scene
 preparation (down-sampling, normals, plane removal, observed depth) that a multi-object search
 would share. Accuracy runs may use the shared CPU lock; ``--timing-only`` re-times a subset
 (run it under the exclusive lock) and merges its times into the existing JSON.
@@ -51,6 +55,15 @@ SCENES = ('peg_in_hole', 'peg_in_slot', 'revolute_pair', 'prismatic_pair', 'sphe
           'primitives')
 METHODS = ('ppf', 'fpfh', 'localize', 'open3d_fpfh_ransac')
 TOL_T, TOL_R = 0.002, np.radians(2.0)
+# link_base and link_arm are the same 0.128 x 0.032 x 0.0192 brick; their frames differ by a
+# shift: link_base's origin is the centre of its top face, link_arm's the centre of its bottom
+# face 0.016 m from one end (make_models._joint_models): the same brick point has coordinates
+# p_arm = p_base + (0.048, 0, 0.0192). TWIN_OFFSET[(twin, name)] maps name's frame into twin's.
+TWINS = {'link_base': ('link_arm',), 'link_arm': ('link_base',)}
+TWIN_OFFSET = {('link_arm', 'link_base'): np.array([[1, 0, 0, 0.048], [0, 1, 0, 0],
+                                                     [0, 0, 1, 0.0192], [0, 0, 0, 1.0]]),
+               ('link_base', 'link_arm'): np.array([[1, 0, 0, -0.048], [0, 1, 0, 0],
+                                                     [0, 0, 1, -0.0192], [0, 0, 0, 1.0]])}
 
 
 def stereo_frames(cache: Path, frames_per_scene: int):
@@ -141,7 +154,7 @@ def main() -> None:
     args = parser.parse_args()
 
     models, symmetries, sym_sets = {}, {}, {}
-    trials = []
+    trials, poses_of = [], []
     for scene_name, seed, frame, pts, camera, poses in stereo_frames(args.cache, args.frames):
         for name, T in poses.items():
             if name not in models:
@@ -151,6 +164,7 @@ def main() -> None:
                 symmetries[name] = find_symmetries(s.points, s.spacing)
                 sym_sets[name] = symmetries[name].rotation_set()
             trials.append((scene_name, seed, frame, name, pts, camera, T))
+            poses_of.append(poses)
     print(f'{len(trials)} trials on {len(trials) // 2} clouds', flush=True)
     if args.timing_only:
         return timing_only(args, trials, models)
@@ -160,9 +174,17 @@ def main() -> None:
         for method in args.methods:
             pose, dt, score = run_method(method, models[name], pts, camera, i)
             e_t, e_r = symmetric_pose_error(pose, T, symmetries[name], sym_sets[name])
+            strict = bool(e_t <= TOL_T and e_r <= TOL_R)
+            for twin in TWINS.get(name, ()):
+                if twin in poses_of[i]:
+                    # the twin's truth, expressed for this model's frame
+                    Tt = poses_of[i][twin] @ TWIN_OFFSET[(twin, name)]
+                    et2, er2 = symmetric_pose_error(pose, Tt, symmetries[name], sym_sets[name])
+                    if max(et2 / TOL_T, er2 / TOL_R) < max(e_t / TOL_T, e_r / TOL_R):
+                        e_t, e_r = et2, er2
             rec[method] = {'t_err_m': e_t, 'r_err_deg': float(np.degrees(e_r)),
                            'add_s_m': add_s(pose, T, models[name].template.points),
-                           'time_s': dt, 'score': score,
+                           'time_s': dt, 'score': score, 'success_strict': strict,
                            'success': bool(e_t <= TOL_T and e_r <= TOL_R)}
         records.append(rec)
         print(i, scene_name, frame, name, {m: (round(rec[m]['t_err_m'] * 1000, 2),
@@ -174,6 +196,7 @@ def main() -> None:
         rs = [r[method] for r in records]
         summary[method] = {
             'success_rate': float(np.mean([r['success'] for r in rs])),
+            'success_rate_strict_names': float(np.mean([r['success_strict'] for r in rs])),
             'translation_error_m': stats([r['t_err_m'] for r in rs]),
             'rotation_error_deg': stats([r['r_err_deg'] for r in rs]),
             'add_s_m': stats([r['add_s_m'] for r in rs]),

@@ -235,12 +235,12 @@ def prepare_acquisition_scene(scene_points: np.ndarray, scene_normals: Optional[
 
 
 def _rough_ppf(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
-               max_hypotheses: int) -> List[tuple]:
+               max_hypotheses: int, reference_stride: int) -> List[tuple]:
     step = model.ppf.distance_step
     search = scene.cloud(step, drop_plane=True, min_plane_extent=2.0 * model.diameter,
                          seed=seed)
     S, SN = np.asarray(search.points), np.asarray(search.normals)
-    poses, votes = ppf_vote(model.ppf, S, SN, reference_stride=5, seed=seed)
+    poses, votes = ppf_vote(model.ppf, S, SN, reference_stride=reference_stride, seed=seed)
     poses, scores = cluster_poses(poses, votes, model.centroid, 0.1 * model.diameter,
                                   np.radians(20.0), max_clusters=max_hypotheses)
     return [(T, float(s)) for T, s in zip(poses, scores)]
@@ -292,7 +292,8 @@ def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
     local.orient_normals_towards_camera_location(np.zeros(3))
     rng = np.random.default_rng(0)
     src = None
-    stages = ((step, 2.0 * step, 15), (0.004, 0.008, 15), (0.0015, 0.005, 20))
+    stages = ((step, 2.0 * step, 15), (0.004, 0.008, 20), (0.0015, 0.005, 30),
+              (0.0015, 0.003, 30))
     for k, reach, iters in stages if wide else stages[1:]:
         R, tr = pose[:3, :3], pose[:3, 3]
         keep = np.flatnonzero(unoccluded_mask(t.points @ R.T + tr, t.normals @ R.T,
@@ -314,7 +315,8 @@ def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
 def _slide_search(model: AcquisitionModel, pose: np.ndarray, observed: ObservedDepth,
                   tolerance: float) -> Tuple[np.ndarray, bool]:
     """Pattern search of the pose's translation along the model's principal axes (steps of
-    diam/4 down to diam/32), keeping moves that raise the combined visibility score.
+    diam/4 halved down to 4 mm), keeping moves that raise the combined visibility score by
+    more than 0.01 (the score's resolution on coarse pixels); ICP then does the fine part.
 
     ICP cannot slide a long prism along its axis when the end faces are far from where they
     should be (no correspondence reaches them); the rendered silhouette and the free-space
@@ -330,13 +332,13 @@ def _slide_search(model: AcquisitionModel, pose: np.ndarray, observed: ObservedD
     for axis in model.axes:
         direction = pose[:3, :3] @ axis
         delta = model.diameter / 4.0
-        while delta >= model.diameter / 32.0:
+        while delta >= 0.004:
             improved = False
             for sign in (1.0, -1.0):
                 T = pose.copy()
                 T[:3, 3] += sign * delta * direction
                 v = score(T)
-                if v > best + 1e-3:
+                if v > best + 0.01:
                     best, pose, improved, moved = v, T, True, True
                     break
             if not improved:
@@ -349,7 +351,7 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
                    scene_normals: Optional[np.ndarray] = None, camera: CameraLike = None, *,
                    method: str = 'ppf', seed: int = 0, time_budget_s: float = 0.5,
                    max_rough: int = 50, max_refined: int = 8, max_slide: int = 2,
-                   fpfh_attempts: int = 4,
+                   reference_stride: int = 5, fpfh_attempts: int = 4,
                    rough_tolerance: Optional[float] = None,
                    fine_tolerance: float = 0.004) -> List[Hypothesis]:
     """Find ``model`` in a scene cloud with no initial pose (module doc: rough, verification,
@@ -365,6 +367,7 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
     :param time_budget_s: refinement stops once this much wall time [s] is spent (at least one
         hypothesis is refined).
     :param max_rough: rough hypotheses verified.
+    :param reference_stride: PPF: every k-th scene sample is a reference point (Drost: 5).
     :param max_refined: best rough hypotheses refined by ICP.
     :param max_slide: best refined hypotheses whose position is then searched along the model
         axes by the visibility score (and refined again when it moved).
@@ -382,7 +385,7 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
     scene = scene_points if isinstance(scene_points, AcquisitionScene) else \
         prepare_acquisition_scene(scene_points, scene_normals, camera)
     if method == 'ppf':
-        rough = _rough_ppf(model, scene, seed, max_rough)
+        rough = _rough_ppf(model, scene, seed, max_rough, reference_stride)
     else:
         rough = _rough_fpfh(model, scene, seed, fpfh_attempts)
     if not rough:
@@ -409,10 +412,10 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
     rest = hyps[tried:]
     refined.sort(key=lambda h: (h.score, h.inlier_fraction), reverse=True)
     for i, h in enumerate(refined[:max_slide]):
-        pose, moved = _slide_search(model, h.pose, observed, fine_tolerance)
+        slid, moved = _slide_search(model, h.pose, observed, fine_tolerance)
         if not moved:
             continue
-        pose, inliers, rmse = _refine(model, scene, pose, wide=False)
+        pose, inliers, rmse = _refine(model, scene, slid, wide=False)
         vis = score_pose_visibility(model.surface, pose, observed,
                                     inlier_threshold=fine_tolerance)
         if vis.combined > h.score:

@@ -177,7 +177,7 @@ class VisibilityScore:
     :ivar visible_residual: RMS of observed - model depth over the inliers [m] (NaN if none).
     :ivar model_pixels: pixels the model covers in the (coarsened) image.
     :ivar edge_fraction: share of the model's silhouette (not occluded) where the observed
-        depth just outside jumps behind the model by more than ``edge_threshold`` or is
+        depth two (coarse) pixels outside jumps behind the model by more than ``edge_threshold`` or is
         missing -- the depth edge a real object makes. A pose that sinks the model into a
         larger surface (a box face inside a table top) has a visible surface full of inliers
         but no edges: edge_fraction near 0. Objects resting on a support keep the edges of
@@ -196,10 +196,10 @@ class VisibilityScore:
 
     @property
     def combined(self) -> float:
-        """``score * (0.5 + 0.5 * edge_fraction)`` (edge term 0.5 when unknown): the ranking
-        score of pose hypotheses in acquisition."""
+        """``score * (0.25 + 0.75 * edge_fraction)`` (edge fraction 0.5 when unknown): the
+        ranking score of pose hypotheses in acquisition."""
         e = 0.5 if not np.isfinite(self.edge_fraction) else self.edge_fraction
-        return self.score * (0.5 + 0.5 * e)
+        return self.score * (0.25 + 0.75 * e)
 
 
 @numba.njit(cache=True)
@@ -372,7 +372,7 @@ def score_pose_visibility(surface: SurfaceSamples, pose: np.ndarray, observed: O
     if n == 0:
         return VisibilityScore(0.0, 0.0, 0.0, 0.0, 0.0, float('nan'), 0)
     score = (inl - violation_weight * vio) / n
-    sup, cont = _edges(model, observed.depth, float(edge_threshold), 1)
+    sup, cont = _edges(model, observed.depth, float(edge_threshold), 2)
     edge = sup / (sup + cont) if sup + cont else float('nan')
     return VisibilityScore(float(min(1.0, max(0.0, score))), inl / n, vio / n, occ / n,
                            unk / n, float(np.sqrt(ss / inl)) if inl else float('nan'), int(n),
