@@ -166,3 +166,15 @@ def test_bad_input_is_refused(meshes):
         acquire_object(model, np.full((100, 3), np.nan))
     with pytest.raises(ValueError, match='shape'):
         prepare_acquisition_scene(np.zeros((10, 2)))
+
+
+def test_localize_uses_acquisition_for_its_global_search(meshes, symmetries):
+    from object_localizer.localization import localize
+    rng = np.random.default_rng(8)
+    model = prepare_acquisition_model(meshes['peg'])
+    T = make_transform(rotation_about_axis([-0.4, 1.0, 0.3], 1.1), [0.0, 0.03, 0.6])
+    res = localize(model.template, _scene_of(meshes, 'peg', T, rng), acquisition=model,
+                   camera=CAMERA)
+    assert res.method == 'acquisition+fine'
+    e_t, e_r = symmetric_pose_error(res.pose, T, symmetries['peg'])
+    assert e_t < 0.002 and e_r < np.radians(2.0), (e_t, np.degrees(e_r))
