@@ -56,9 +56,9 @@ class ModelSymmetry:
 
 def _candidate_axes(Q: np.ndarray, normals: np.ndarray | None, count: int = 12) -> np.ndarray:
     """The model frame's axes (exact for models built symmetric in their own frame), the
-    non-degenerate principal axes of the centred samples and the ``count`` most frequent normal directions
-    (antipodes merged): the axes a symmetry of a polyhedron or a solid of revolution turns
-    about. Earlier axes win over later ones within 2.5 degrees."""
+    non-degenerate principal axes of the centred samples and the ``count`` most frequent normal
+    directions (antipodes merged): the axes a symmetry of a polyhedron or a solid of
+    revolution turns about. Earlier axes win over later ones within 2.5 degrees."""
     vals, vecs = np.linalg.eigh(Q.T @ Q)
     axes = [np.eye(3)[k] for k in range(3)]
     for k in range(3):

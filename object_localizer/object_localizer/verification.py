@@ -177,7 +177,8 @@ class VisibilityScore:
     :ivar visible_residual: RMS of observed - model depth over the inliers [m] (NaN if none).
     :ivar model_pixels: pixels the model covers in the (coarsened) image.
     :ivar edge_fraction: share of the model's silhouette (not occluded) where the observed
-        depth two (coarse) pixels outside jumps behind the model by more than ``edge_threshold`` or is
+        depth two (coarse) pixels outside jumps behind the model by more than
+        ``edge_threshold`` or is
         missing -- the depth edge a real object makes. A pose that sinks the model into a
         larger surface (a box face inside a table top) has a visible surface full of inliers
         but no edges: edge_fraction near 0. Objects resting on a support keep the edges of
