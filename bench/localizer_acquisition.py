@@ -157,7 +157,15 @@ def main() -> None:
                         help='re-time N trials per method (exclusive lock) and merge the times '
                              'into the existing JSON')
     parser.add_argument('--out', default='localizer_acquisition')
+    parser.add_argument('--rewrite', action='store_true',
+                        help='recompute the goals of the existing JSON from its stored '
+                             'measurements (no new measurement)')
     args = parser.parse_args()
+    if args.rewrite:
+        data = json.loads((results_dir() / f'{args.out}.json').read_text())
+        args.methods = list(data['summary'])
+        return write(args, data['records'], data['summary'], data['success_rate_per_object'],
+                     data.get('timing_exclusive_lock'))
 
     models, symmetries, sym_sets = {}, {}, {}
     trials, poses_of = [], []
@@ -232,6 +240,7 @@ def write(args, records, summary, per_object, timing):
         goal(f'{best}_success_rate_within_2mm_2deg_symmetry_aware', 0.99, '>=',
              summary[best]['success_rate']),
         goal(f'{best}_time_per_object_median_s', 0.5, '<=', timing_src[best]['median']),
+        goal(f'{best}_time_per_object_p95_s', 0.5, '<=', timing_src[best]['p95']),
         goal('trials', 200, '>=', len(records)),
     ]
     paired = {}
@@ -250,7 +259,11 @@ def write(args, records, summary, per_object, timing):
                  paired_success_on_the_peers_trials=paired,
                  timing_exclusive_lock=timing, trials=len(records),
                  tolerance={'translation_m': TOL_T, 'rotation_deg': float(np.degrees(TOL_R))},
-                 load_average=list(os.getloadavg()), records=records,
+                 load_average_at_write=list(os.getloadavg()),
+                 accuracy_run_note='accuracy run under the shared CPU lock at load average '
+                                   '5-17 (other helpers busy): its time_s figures are inflated; '
+                                   'see timing_exclusive_lock for the times on a quiet machine',
+                 records=records,
                  stereo='block_matching, 160 disparities (the demo stereo node settings)')
 
 
