@@ -92,7 +92,7 @@ def _parametrisation(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
 
     def residuals(x):
         m = build(x)
-        R_hat, p_hat, _ = m.project(R, p, sigma_position, sigma_rotation)
+        R_hat, p_hat, _ = m.project(R, p, sigma_position * ray_ratio, sigma_rotation)
         E = R_hat @ np.transpose(R, (0, 2, 1))
         # sin(angle) * axis of the residual rotation: its rotation vector to first order
         rot = 0.5 * np.stack([E[:, 2, 1] - E[:, 1, 2], E[:, 0, 2] - E[:, 2, 0],

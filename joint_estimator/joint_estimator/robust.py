@@ -72,7 +72,9 @@ def candidate_residuals(model, R: np.ndarray, p: np.ndarray, sigma_position: flo
     """
     n, k = R.shape[:2]
     Rf, pf = R.reshape(n * k, 3, 3), p.reshape(n * k, 3)
-    R_hat, p_hat, _ = model.project(Rf, pf, sigma_position, sigma_rotation)
+    # joint coordinates from positions weighted as noisy as along the line of sight: the
+    # closed-form projections are isotropic, and depth noise must not drive them
+    R_hat, p_hat, _ = model.project(Rf, pf, sigma_position * ray_ratio, sigma_rotation)
     rot = _angles_from_chordal(3.0 - np.einsum('nij,nij->n', R_hat, Rf))
     d = p_hat - pf
     if ray_ratio != 1.0:

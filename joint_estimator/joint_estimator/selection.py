@@ -253,10 +253,18 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
     # by absorbing depth noise
     ray_ratio = (line_of_sight_ratio(p) if robust and camera_noise and sigma_position is None
                  else 1.0)
-    for t in types:
+    # a spherical joint's three rotational coordinates can absorb the orientation residual
+    # entirely, so it cannot estimate the orientation noise itself: it takes the median of
+    # the other types' estimates (fitted first)
+    order = sorted(types, key=lambda jt: jt == JointType.SPHERICAL)
+    for t in order:
+        sr_t = sigma_rotation
+        if t == JointType.SPHERICAL and sigma_rotation is None and robust:
+            others = [f.sigma_rotation for f in result.candidates.values()]
+            sr_t = float(np.median(others)) if others else None
         try:
             if robust:
-                rf = robust_fit(t, Rc, pc, sigma_position, sigma_rotation, min_rotation_range,
+                rf = robust_fit(t, Rc, pc, sigma_position, sr_t, min_rotation_range,
                                 min_translation_range, threshold, refine=refine, rng=rng,
                                 ray_ratio=ray_ratio)
                 model, inliers, choice = rf.model, rf.inliers, rf.choice
@@ -273,13 +281,20 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
             result.failures[t] = str(e)
             continue
         R_sel, p_sel = Rc[rows, choice], pc[rows, choice]
-        fit = make_fit(model, R_sel, p_sel, sp, sr, correction, inliers)
+        fit = make_fit(model, R_sel, p_sel, sp * ray_ratio, sr, correction, inliers)
+        fit.sigma_position = sp
+        if ray_ratio != 1.0:      # the residuals with the depth component whitened
+            rot, pos = candidate_residuals(model, R_sel[:, None], p_sel[:, None], sp, sr,
+                                           ray_ratio)
+            fit.chi2 = (rot[:, 0] / sr) ** 2 + (pos[:, 0] / sp) ** 2
         fit.repaired = choice != 0
-        fit.scale_estimated = estimated
+        fit.scale_estimated = estimated or (t == JointType.SPHERICAL and sigma_rotation is None)
         fit.extra['line_of_sight_noise_ratio'] = ray_ratio
         fit.score = bic_score(fit, max(threshold, outlier_cost(sp, sr)))
         result.candidates[t] = fit
         chosen[t] = (R_sel, p_sel)
+    result.candidates = {t: result.candidates[t] for t in types if t in result.candidates}
+    result.failures = {t: result.failures[t] for t in types if t in result.failures}
     if not result.candidates:
         raise DegenerateMotionError('no joint type could be fitted: ' + '; '.join(
             f'{t.name.lower()}: {m}' for t, m in result.failures.items()))
