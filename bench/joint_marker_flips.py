@@ -11,9 +11,10 @@ within 15 deg of the camera's vertical, 0.9-1.5 m in front of it, and a square m
 200-400 frames (a 7-13 s opening at 30 fps). The marker's four corners are projected with a
 pinhole camera (f = 1400 px, 1920 x 1080), Gaussian pixel noise (0.5-1.0 px) is added, and the
 pose comes from OpenCV's own square-marker solver
-(``cv2.solvePnPGeneric(..., flags=cv2.SOLVEPNP_IPPE_SQUARE)``; the solution with the lower reprojection error is used, as ``cv2.aruco`` does), so the ambiguity
-flips arise as they do in practice. Frames where the marker is seen at more than 75 deg from
-its normal are not detected (dropped). A frame counts as *flipped* when the returned solution
+(``cv2.solvePnPGeneric(..., flags=cv2.SOLVEPNP_IPPE_SQUARE)``; the solution with the lower
+reprojection error is used, as ``cv2.aruco`` does), so the ambiguity flips arise as they do
+in practice. Frames where the marker is seen at more than 75 deg from its normal are not
+detected (dropped). A frame counts as *flipped* when the returned solution
 is farther from the true orientation than the other solution and the two differ by more than
 5 deg; tracks whose flip rate lies outside 10-60 % are redrawn (the number redrawn is
 reported).
