@@ -228,7 +228,7 @@ class RevoluteModel(AxisLineModel):
 
 
 def project_track(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
-                  sigma_rotation: float, ray_ratio: float = 1.0) -> tuple:
+                  sigma_rotation: float, ray_ratio: float = 1.0, exact: bool = True) -> tuple:
     """Project a track onto any joint ``model`` with position noise that is ``ray_ratio`` times
     larger along the line of sight from B's origin (a camera's depth) than across it
     (``sigma_position``).
@@ -238,12 +238,14 @@ def project_track(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
     drive them), and for a revolute joint refined to the exact minimiser of the anisotropic
     cost by safeguarded Newton steps on the angle (:func:`anisotropic_angles`).
 
+    ``exact=False`` skips the Newton steps (a cheaper approximation, used to rank hypotheses).
+
     :returns: ``(R_hat (N, 3, 3), p_hat (N, 3), coordinates (N, dof))``.
     """
     if ray_ratio == 1.0:
         return model.project(R, p, sigma_position, sigma_rotation)
     R_hat, p_hat, q = model.project(R, p, sigma_position * ray_ratio, sigma_rotation)
-    if isinstance(model, RevoluteModel) and R.shape[0]:
+    if exact and isinstance(model, RevoluteModel) and R.shape[0]:
         q = anisotropic_angles(R, p, model, q[:, 0], sigma_position, sigma_rotation,
                                ray_ratio)[:, None]
         T = model.pose_at(q[:, 0])

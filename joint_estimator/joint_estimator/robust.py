@@ -52,6 +52,7 @@ DEFAULT_THRESHOLD = float(chi2_dist.ppf(0.999, 6))
 MEDIAN_NORM_3D = float(np.sqrt(chi2_dist.ppf(0.5, 3)))
 #: Quantile of the residual norms that sets a hypothesis' noise scale (breakdown 70 %).
 SCALE_QUANTILE = 0.3
+_QUANTILE_NORM_3D = float(np.sqrt(chi2_dist.ppf(SCALE_QUANTILE, 3)))
 #: Floors of the estimated noise scales (noise-free data would give zero).
 MIN_SIGMA_POSITION = 1e-6
 MIN_SIGMA_ROTATION = 1e-6
@@ -65,7 +66,8 @@ def _angles_from_chordal(c: np.ndarray) -> np.ndarray:
 
 
 def candidate_residuals(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
-                        sigma_rotation: float, ray_ratio: float = 1.0) -> tuple:
+                        sigma_rotation: float, ray_ratio: float = 1.0,
+                        exact: bool = True) -> tuple:
     """Rotation angle [rad] and position distance [m] of every candidate about ``model``.
 
     :param R: (N, K, 3, 3) candidate orientations; :param p: (N, K, 3) candidate positions.
@@ -76,7 +78,8 @@ def candidate_residuals(model, R: np.ndarray, p: np.ndarray, sigma_position: flo
     """
     n, k = R.shape[:2]
     Rf, pf = R.reshape(n * k, 3, 3), p.reshape(n * k, 3)
-    R_hat, p_hat, _ = project_track(model, Rf, pf, sigma_position, sigma_rotation, ray_ratio)
+    R_hat, p_hat, _ = project_track(model, Rf, pf, sigma_position, sigma_rotation, ray_ratio,
+                                    exact)
     rot = _angles_from_chordal(3.0 - np.einsum('nij,nij->n', R_hat, Rf))
     d = p_hat - pf
     if ray_ratio != 1.0:
@@ -132,7 +135,8 @@ def median_scales(rot: np.ndarray, pos: np.ndarray, quantile: float = SCALE_QUAN
     norms (each the norm of a 3-d Gaussian vector): their ``quantile`` over the same quantile of
     the norm of a standard 3-d normal vector (the median, 1.538, for 0.5), floored. The default
     0.3 keeps the estimate when up to 70 % of the frames are outliers."""
-    ref = float(np.sqrt(chi2_dist.ppf(quantile, 3)))
+    ref = (_QUANTILE_NORM_3D if quantile == SCALE_QUANTILE
+           else float(np.sqrt(chi2_dist.ppf(quantile, 3))))
     return (max(float(np.quantile(pos, quantile)) / ref, MIN_SIGMA_POSITION),
             max(float(np.quantile(rot, quantile)) / ref, MIN_SIGMA_ROTATION))
 
@@ -252,10 +256,10 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
 
     start = with_given(*_START_SIGMAS)
 
-    def evaluate(model, scales=None):
+    def evaluate(model, scales=None, exact=True):
         """(cost, chi2 (N,), choice (N,), scales) of a model; scales estimated if None."""
         sp, sr = start if scales is None else scales
-        rot, pos = candidate_residuals(model, R, p, sp, sr, ray_ratio)
+        rot, pos = candidate_residuals(model, R, p, sp, sr, ray_ratio, exact)
         if scales is None and estimate:
             choice = np.argmin((rot / sr) ** 2 + (pos / sp) ** 2 + twin_penalty, axis=1)
             sp, sr = with_given(*median_scales(rot[rows, choice], pos[rows, choice]))
@@ -278,7 +282,7 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
     best, best_model, needed = None, None, max_iterations
     try:
         full = fit_model(jt, R[:, 0], p[:, 0], min_rotation_range, min_translation_range)
-        best, best_model = evaluate(full), full
+        best, best_model = evaluate(full, exact=False), full
         needed = iterations_needed(best[1])
     except DegenerateMotionError:
         pass          # outliers can fake (or hide) motion: let the minimal sets decide
@@ -291,7 +295,7 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
             hyp = fit_model(jt, R[idx, pick], p[idx, pick], 0.0, 0.0)
         except (DegenerateMotionError, np.linalg.LinAlgError):
             continue
-        res = evaluate(hyp)
+        res = evaluate(hyp, exact=False)
         if best is None or res[0] < best[0]:
             best, best_model = res, hyp
             needed = iterations_needed(res[1])
