@@ -285,7 +285,7 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
             continue
         R_sel, p_sel = Rc[rows, choice], pc[rows, choice]
         fit = make_fit(model, R_sel, p_sel, sp, sr, correction, inliers, ray_ratio)
-        fit.repaired = choice != 0
+        fit.repaired = (choice != 0) & fit.inliers      # twins used by inlier frames
         fit.scale_estimated = estimated or (t == JointType.SPHERICAL and sigma_rotation is None)
         fit.extra['line_of_sight_noise_ratio'] = ray_ratio
         fit.score = bic_score(fit, max(threshold, outlier_cost(sp, sr)))
