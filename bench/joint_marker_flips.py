@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 from pathlib import Path
 import shutil
 import subprocess
@@ -228,6 +229,7 @@ def main():
     if args.quick:
         args.tracks = 10
     main_estimate, main_commit = load_main_estimator()
+    load_start = os.getloadavg()
     rows, redrawn, seed = [], 0, 0
     t_start = time.perf_counter()
     while len(rows) < args.tracks:
@@ -338,7 +340,8 @@ def main():
                   'estimators': 'DEFAULT settings, no noise levels given',
                   'baseline': f'main branch estimator at {main_commit}'},
         flip_rate_per_track=stats(flips), tracks_redrawn_outside_flip_band=redrawn,
-        new=new, main=base, oracle_reference=oracle, tracks=rows, wall_time_s=wall)
+        new=new, main=base, oracle_reference=oracle, tracks=rows, wall_time_s=wall,
+        load_average={'start': load_start, 'end': os.getloadavg()})
 
 
 if __name__ == '__main__':
