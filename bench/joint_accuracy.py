@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import time
 
 import numpy as np
@@ -181,6 +182,7 @@ def main():
     if args.quick:
         args.seeds, args.seeds_type_goal, args.seeds_type = 5, 5, 1
     t_start = time.perf_counter()
+    load_start = os.getloadavg()
     cells = list(itertools.product(SIGMA_POS, SIGMA_ROT, NS, RANGES, OUTLIERS))
 
     revolute = {}
@@ -265,7 +267,8 @@ def main():
                        'max_disagreement_deg': disagree},
         outlier_to_clean_ratios={'axis': ratios_axis, 'line': ratios_line},
         revolute_cells=revolute, type_cells=types,
-        wall_time_s={'part_a_revolute': t_part_a, 'total': t_total})
+        wall_time_s={'part_a_revolute': t_part_a, 'total': t_total},
+        load_average={'start': load_start, 'end': os.getloadavg()})
 
 
 if __name__ == '__main__':
