@@ -201,6 +201,8 @@ class ObjectLocalizerNode(Node):
             try:
                 self._process(msg)
             except Exception as exc:  # keep the node alive; the reason is logged and counted
+                if not self.context.ok():
+                    return              # shutting down (Ctrl-C): nothing to publish to
                 self.counts['rejected'] += 1
                 self.get_logger().error(f'cloud not processed: {type(exc).__name__}: {exc}')
 
@@ -217,15 +219,14 @@ class ObjectLocalizerNode(Node):
         verified = []
         for name in self._order:
             tracker = self.trackers[name]
-            before = tracker.state
             with self._settings_lock:
                 result = tracker.update(scene, stamp, verified)
             self._cpu[name].append(result.cpu_seconds)
             if result.pose is not None:
                 verified.append((tracker.model, result.pose))
-            if result.state == TrackState.LOST and before != TrackState.LOST:
+            if result.lost:
                 self.counts['lost'] += 1
-                self.get_logger().warning(f'{name}: {result.reason}; re-acquiring')
+                self.get_logger().warning(f'{name}: {result.reason}')
             if result.acquired:
                 self.counts['acquired'] += 1
                 self.get_logger().info(f'{name}: acquired (quality '
