@@ -37,7 +37,7 @@ from collections import deque
 from dataclasses import dataclass, field
 import enum
 import time
-from typing import Callable, Deque, Optional, Sequence, Tuple
+from typing import Any, Callable, Deque, Optional, Sequence, Tuple
 
 import numpy as np
 import open3d as o3d
@@ -48,7 +48,7 @@ from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
 __all__ = ['TrackState', 'TrackerSettings', 'TrackingModel', 'PoseQuality', 'TrackUpdate',
            'SceneCloud', 'prepare_tracking_model', 'predict_constant_velocity', 'track_icp',
-           'check_pose', 'ObjectTracker', 'Acquirer']
+           'check_pose', 'ObjectTracker', 'Acquirer', 'make_acquirer', 'acquire_rough_fine']
 
 
 class TrackState(enum.IntEnum):
@@ -134,6 +134,8 @@ class TrackingModel:
     probe: np.ndarray
     solid: o3d.t.geometry.RaycastingScene
     interior: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    mesh: Optional[PolygonMesh] = None
+    acquisition: Any = None       # object_localizer.acquisition.AcquisitionModel, built lazily
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
         """Signed distance [m] of points (M, 3) in the model frame to its surface (< 0
@@ -156,7 +158,7 @@ def prepare_tracking_model(mesh: PolygonMesh, voxel_size: float = 0.003,
     solid = o3d.t.geometry.RaycastingScene()
     solid.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.asarray(mesh.triangles(), dtype=np.uint32)))
-    model = TrackingModel(mesh.name, template, P, N, centre, radius, probe, solid)
+    model = TrackingModel(mesh.name, template, P, N, centre, radius, probe, solid, mesh=mesh)
     box = np.random.default_rng(seed).uniform(P.min(axis=0), P.max(axis=0), size=(4000, 3))
     model.interior = box[model.signed_distance(box) < 0][:400]
     return model
@@ -438,7 +440,34 @@ Acquirer = Callable[[TrackingModel, np.ndarray, int], list]
 
 def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int) -> list:
     """Global acquisition with ``localization.localize`` (FPFH + RANSAC, then ICP)."""
-    return [localize(model.template, points, seed=seed).pose]
+    P = np.asarray(points, dtype=float)
+    return [localize(model.template, P[np.all(np.isfinite(P), axis=1)], seed=seed).pose]
+
+
+def make_acquirer(method: str, max_candidates: int = 8,
+                  time_budget_s: float = 0.3) -> Acquirer:
+    """The global acquisition of ``object_localizer.acquisition`` (``'ppf'``: point-pair-feature
+    voting, ``'fpfh'``: FPFH + RANSAC, both with visibility verification) as an
+    :data:`Acquirer`: its best ``max_candidates`` hypotheses, refined or not, best first (the
+    tracker refines and checks each in turn); ``'rough_fine'``: :func:`acquire_rough_fine`.
+    The acquisition model is built on first use and kept on the tracking model."""
+    if method == 'rough_fine':
+        return acquire_rough_fine
+    from object_localizer import acquisition
+
+    if method not in acquisition.METHODS:
+        raise ValueError(f'acquisition method must be one of '
+                         f'{("rough_fine",) + tuple(acquisition.METHODS)}, got {method!r}')
+
+    def acquire(model: TrackingModel, points: np.ndarray, seed: int) -> list:
+        if model.acquisition is None:
+            model.acquisition = acquisition.prepare_acquisition_model(model.mesh)
+        P = np.asarray(points, dtype=float)
+        hyps = acquisition.acquire_object(model.acquisition, P[np.all(np.isfinite(P), axis=1)],
+                                          method=method, seed=seed,
+                                          time_budget_s=time_budget_s)
+        return [h.pose for h in hyps[:max_candidates]]
+    return acquire
 
 
 @dataclass

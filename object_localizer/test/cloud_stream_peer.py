@@ -3,7 +3,8 @@
 Publishes ``/points2`` (PointCloud2, reliable, 10 Hz) of a scene with the peg moving slowly over
 a table, and the peg's true pose on ``/objects/peg/pose_truth`` with the same stamp. The clouds
 are the peg's and the table's visible surfaces with 0.7 mm noise (the table hidden behind the
-peg removed), precomputed for 100 poses (a 10 s loop) and played in a loop (stamps keep increasing).
+peg removed), precomputed for 100 poses (a 10 s loop) and played in a loop (stamps keep
+increasing).
 """
 
 import time

@@ -68,10 +68,10 @@ def test_node_refuses_malformed_initial_poses():
 
 # --- the node in a live graph: restarts and start-up orders -----------------------------------
 
-#: Issue #11 asks for 5 s; with the FPFH + RANSAC acquisition of main the first pose comes
-#: 4-7 s after the start on this 2-core machine under load, so the test bounds it at 15 s (a
-#: hang still fails) and the 5 s goal is reported as not met.
-FIRST_POSE_S = 15.0
+#: Issue #11: a verified pose within 5 s of the start (process start-up about 1.5 s of CPU,
+#: the PPF acquisition about 0.3 s on these clouds; more on a machine loaded by other jobs).
+FIRST_POSE_S = 5.0
+
 
 def _start_stream():
     """The producer (cloud_stream_peer.py) as its own process."""
