@@ -68,6 +68,7 @@ class TrackerSettings:
     :ivar loss_scale: Tukey M-estimator scale k [m] at the last stage (annealed from 3k).
     :ivar icp_iterations: largest number of ICP iterations per stage.
     :ivar scene_voxel: voxel size [m] the scene crop is down-sampled to for ICP.
+    :ivar max_icp_points: at most this many of those points take part (evenly chosen).
     :ivar inlier_distance: largest distance [m] (along the model normal) of an observed point
         from the model surface for the model sample to count as seen (inlier).
     :ivar min_inlier_fraction: smallest inlier fraction of a published pose.
@@ -97,6 +98,7 @@ class TrackerSettings:
     loss_scale: float = 0.0015
     icp_iterations: int = 30
     scene_voxel: float = 0.003
+    max_icp_points: int = 2500
     inlier_distance: float = 0.003
     min_inlier_fraction: float = 0.5
     max_visible_residual: float = 0.0015
@@ -135,6 +137,8 @@ class TrackingModel:
     solid: o3d.t.geometry.RaycastingScene
     interior: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     mesh: Optional[PolygonMesh] = None
+    box_min: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    box_max: np.ndarray = field(default_factory=lambda: np.zeros(3))
     acquisition: Any = None       # object_localizer.acquisition.AcquisitionModel, built lazily
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
@@ -158,7 +162,8 @@ def prepare_tracking_model(mesh: PolygonMesh, voxel_size: float = 0.003,
     solid = o3d.t.geometry.RaycastingScene()
     solid.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.asarray(mesh.triangles(), dtype=np.uint32)))
-    model = TrackingModel(mesh.name, template, P, N, centre, radius, probe, solid, mesh=mesh)
+    model = TrackingModel(mesh.name, template, P, N, centre, radius, probe, solid, mesh=mesh,
+                          box_min=P.min(axis=0), box_max=P.max(axis=0))
     box = np.random.default_rng(seed).uniform(P.min(axis=0), P.max(axis=0), size=(4000, 3))
     model.interior = box[model.signed_distance(box) < 0][:400]
     return model
@@ -397,6 +402,10 @@ def track_icp(model: TrackingModel, near_points: np.ndarray, start: np.ndarray,
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near_points))
     if s.scene_voxel > 0:
         src = src.voxel_down_sample(s.scene_voxel)
+    if len(src.points) > s.max_icp_points:     # big objects: a fixed, even share of the crop
+        step = len(src.points) / s.max_icp_points
+        src = src.select_by_index(np.floor(np.arange(s.max_icp_points) * step).astype(int)
+                                  .tolist())
     pose = np.asarray(start, dtype=float).copy()
     criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, s.icp_iterations)
     for scale, reach in ((3.0 * s.loss_scale, 2.0 * s.max_distance),
@@ -509,6 +518,10 @@ class ObjectTracker:
         centre = start[:3, :3] @ m.centre + start[:3, 3]
         cone = scene.cone(centre, reach)
         near = cone[np.einsum('ij,ij->i', cone - centre, cone - centre) <= reach * reach]
+        # then the model's bounding box at the start pose, grown by the ICP reach
+        local = (near - start[:3, 3]) @ start[:3, :3]
+        margin = 2.0 * s.max_distance
+        near = near[np.all((local >= m.box_min - margin) & (local <= m.box_max + margin), axis=1)]
         if len(near) < 10:
             return start, PoseQuality(reason=f'only {len(near)} scene points near the pose')
         pose = track_icp(m, near, start, s)
