@@ -453,8 +453,8 @@ def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int) -> l
     return [localize(model.template, P[np.all(np.isfinite(P), axis=1)], seed=seed).pose]
 
 
-def make_acquirer(method: str, max_candidates: int = 8,
-                  time_budget_s: float = 0.3) -> Acquirer:
+def make_acquirer(method: str, max_candidates: int = 6,
+                  time_budget_s: float = 0.0) -> Acquirer:
     """The global acquisition of ``object_localizer.acquisition`` (``'ppf'``: point-pair-feature
     voting, ``'fpfh'``: FPFH + RANSAC, both with visibility verification) as an
     :data:`Acquirer`: its best ``max_candidates`` hypotheses, refined or not, best first (the
