@@ -56,6 +56,7 @@ class ObjectLocalizerNode(Node):
         'loss_scale': 'loss_scale',
         'inlier_distance': 'inlier_distance',
         'min_inlier_fraction': 'min_inlier_fraction',
+        'min_acquisition_inlier_fraction': 'min_acquisition_inlier_fraction',
         'max_visible_residual': 'max_visible_residual',
         'max_free_space_fraction': 'max_free_space_fraction',
         'max_prediction_error': 'max_prediction_error',
@@ -92,9 +93,12 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('inlier_distance', 0.003,
                                _float('largest surface distance [m] of an observed point for a '
                                       'model sample to count as seen', 0.0005, 0.05))
-        self.declare_parameter('min_inlier_fraction', 0.5,
+        self.declare_parameter('min_inlier_fraction', 0.75,
                                _float('smallest share of the expected-visible model surface '
-                                      'seen, for a pose to be published', 0.0, 1.0))
+                                      'seen, for a tracked pose to be published', 0.0, 1.0))
+        self.declare_parameter('min_acquisition_inlier_fraction', 0.85,
+                               _float('the same for an acquired pose or a hint (no prediction '
+                                      'to compare with)', 0.0, 1.0))
         self.declare_parameter('max_visible_residual', 0.0015,
                                _float('largest RMS surface residual [m] of a published pose',
                                       0.0001, 0.05))

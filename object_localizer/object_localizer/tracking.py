@@ -72,7 +72,11 @@ class TrackerSettings:
     :ivar max_icp_points: at most this many of those points take part (evenly chosen).
     :ivar inlier_distance: largest distance [m] (along the model normal) of an observed point
         from the model surface for the model sample to count as seen (inlier).
-    :ivar min_inlier_fraction: smallest inlier fraction of a published pose.
+    :ivar min_inlier_fraction: smallest inlier fraction of a published tracked pose.
+    :ivar min_acquisition_inlier_fraction: the same for a pose with no motion prediction to
+        compare with (global acquisition, hints): stricter, since a part slid along itself
+        (e.g. a brick along its length, its end hidden) can keep most of its surface on the
+        observed one.
     :ivar max_visible_residual: largest RMS inlier residual [m] of a published pose.
     :ivar max_free_space_fraction: largest share of expected-visible model samples through which
         the sensor sees a surface behind the model.
@@ -104,7 +108,8 @@ class TrackerSettings:
     scene_voxel: float = 0.003
     max_icp_points: int = 2500
     inlier_distance: float = 0.003
-    min_inlier_fraction: float = 0.5
+    min_inlier_fraction: float = 0.75
+    min_acquisition_inlier_fraction: float = 0.85
     max_visible_residual: float = 0.0015
     max_free_space_fraction: float = 0.15
     max_prediction_error: float = 0.02
@@ -317,12 +322,15 @@ def _pixels(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[int, 
 
 def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
                settings: TrackerSettings, prediction: Optional[np.ndarray] = None,
-               others: Sequence[Tuple[TrackingModel, np.ndarray]] = ()) -> PoseQuality:
+               others: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
+               acquisition: bool = False) -> PoseQuality:
     """Visibility-aware check of ``pose`` against the scene points on the rays through the
     object (``SceneCloud.cone``), see the module docstring.
 
     :param prediction: the motion prediction (4x4) the pose is compared with; None: no check.
     :param others: other objects' verified (model, pose): the pose must not penetrate them.
+    :param acquisition: the pose has no prediction (acquisition, hint): the stricter
+        ``min_acquisition_inlier_fraction`` applies.
     """
     s = settings
     q = PoseQuality()
@@ -377,9 +385,11 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
     q.free_space_fraction = float(np.count_nonzero(behind)) / expected
     q.visible_residual = float(np.sqrt(np.mean(normal_dist[inlier] ** 2))) \
         if np.any(inlier) else float('nan')
+    min_inliers = max(s.min_inlier_fraction, s.min_acquisition_inlier_fraction) \
+        if acquisition else s.min_inlier_fraction
     checks = [
-        (q.inlier_fraction >= s.min_inlier_fraction,
-         f'inlier fraction {q.inlier_fraction:.2f} < {s.min_inlier_fraction:.2f}'),
+        (q.inlier_fraction >= min_inliers,
+         f'inlier fraction {q.inlier_fraction:.2f} < {min_inliers:.2f}'),
         (q.visible_residual <= s.max_visible_residual,
          f'visible residual {1e3 * q.visible_residual:.2f} mm > '
          f'{1e3 * s.max_visible_residual:.2f} mm'),
@@ -539,7 +549,8 @@ class ObjectTracker:
             self.history.popleft()
 
     def _refine_and_check(self, scene: SceneCloud, start: np.ndarray,
-                          prediction: Optional[np.ndarray]) -> Tuple[np.ndarray, PoseQuality]:
+                          prediction: Optional[np.ndarray], acquisition: bool = False
+                          ) -> Tuple[np.ndarray, PoseQuality]:
         # self._others: set by update() for the duration of one cloud
         m, s = self.model, self.settings
         reach = m.radius + 2.0 * s.max_distance
@@ -553,7 +564,7 @@ class ObjectTracker:
         if len(near) < 10:
             return start, PoseQuality(reason=f'only {len(near)} scene points near the pose')
         pose = track_icp(m, near, start, s)
-        return pose, check_pose(m, pose, cone, s, prediction, self._others)
+        return pose, check_pose(m, pose, cone, s, prediction, self._others, acquisition)
 
     def update(self, points: np.ndarray | SceneCloud, stamp_ns: int,
                others: Sequence[Tuple[TrackingModel, np.ndarray]] = ()) -> TrackUpdate:
@@ -620,7 +631,7 @@ class ObjectTracker:
         s = self.settings
         if self.hint is not None:
             hint, self.hint = self.hint, None
-            pose, q = self._refine_and_check(scene, hint, None)
+            pose, q = self._refine_and_check(scene, hint, None, acquisition=True)
             if q.passed:
                 return self._start(stamp_ns, pose, q, 'initial pose verified')
             hint_reason = f'{prefix}initial pose rejected ({q.reason}); '
@@ -630,7 +641,8 @@ class ObjectTracker:
         best: Optional[Tuple[np.ndarray, PoseQuality]] = None
         passed: list = []
         for candidate in self.acquirer(self.model, scene.points, s.seed + self.acquisitions):
-            pose, q = self._refine_and_check(scene, np.asarray(candidate, dtype=float), None)
+            pose, q = self._refine_and_check(scene, np.asarray(candidate, dtype=float), None,
+                                             acquisition=True)
             if q.passed:
                 passed.append((pose, q))
             elif best is None or q.quality > best[1].quality:
