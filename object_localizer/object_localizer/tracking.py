@@ -607,7 +607,8 @@ class ObjectTracker:
                                                        stamp_ns)
                 pose, q = self._refine_and_check(scene, prediction, prediction)
             else:   # no velocity yet, or too long ago to extrapolate: no prediction to check
-                pose, q = self._refine_and_check(scene, self.history[-1][1], None)
+                pose, q = self._refine_and_check(scene, self.history[-1][1], None,
+                                                 acquisition=True)
             if not q.passed and len(self.history) >= 2:
                 # a sudden stop or turn: from the last pose (no motion) before giving up
                 last = self.history[-1][1]
