@@ -61,6 +61,7 @@ class ObjectLocalizerNode(Node):
         'max_free_space_fraction': 'max_free_space_fraction',
         'max_prediction_error': 'max_prediction_error',
         'max_penetration': 'max_penetration',
+        'stereo_baseline': 'stereo_baseline',
         'static_recheck_period': 'static_recheck_period',
         'track_length': 'max_history',
     }
@@ -108,6 +109,10 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('max_prediction_error', 0.02,
                                _float('largest mean displacement [m] from the constant-velocity '
                                       'prediction, for a published pose', 0.0005, 1.0))
+        self.declare_parameter('stereo_baseline', 0.1,
+                               _float('x [m] of the second stereo camera in the cloud frame: '
+                                      'the check expects only surfaces both cameras face (0: '
+                                      'one viewpoint, e.g. a depth camera)', 0.0, 2.0))
         self.declare_parameter('max_penetration', 0.005,
                                _float('a pose deeper than this [m] inside another verified '
                                       'object (10 % of its volume) is rejected', 0.0005, 0.1))

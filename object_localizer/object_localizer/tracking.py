@@ -82,6 +82,9 @@ class TrackerSettings:
         the sensor sees a surface behind the model.
     :ivar max_prediction_error: largest mean displacement [m] of the model points between the
         pose and the motion prediction.
+    :ivar stereo_baseline: position [m] of the second camera on the x axis of the cloud's
+        optical frame (REP 103 stereo: the right camera at +x); model samples must face both
+        cameras at ``min_view_cos`` to be expected visible (0: a single viewpoint).
     :ivar prediction_horizon: largest gap [s] between clouds over which the motion is
         extrapolated and the pose checked against the prediction; after a longer gap (or from a
         single pose) tracking starts from the last pose with no prediction check.
@@ -96,6 +99,8 @@ class TrackerSettings:
     :ivar ambiguity_distance: acquisition results farther apart than this (ADD-S [m]) are
         distinct solutions; when several pass the check the object is ambiguous (identical
         parts) and is only published if the last known pose is clearly nearer one of them.
+    :ivar twin_reacquire_radius: a part with an identical twin is re-acquired only within this
+        mean displacement [m] of its last known pose (and clearly nearer it than the twin's).
     :ivar static: the object does not move: after a verified pose it is held and re-verified
         every ``static_recheck_period`` [s] (cloud stamps).
     :ivar max_history: accepted poses kept in :attr:`ObjectTracker.history` (bounded).
@@ -114,10 +119,12 @@ class TrackerSettings:
     max_free_space_fraction: float = 0.15
     max_prediction_error: float = 0.02
     prediction_horizon: float = 0.25
+    stereo_baseline: float = 0.1
     min_view_cos: float = 0.3
     min_visible_samples: int = 30
     max_penetration: float = 0.005
     ambiguity_distance: float = 0.005
+    twin_reacquire_radius: float = 0.02
     static: bool = False
     static_recheck_period: float = 1.0
     max_history: int = 300
@@ -339,6 +346,10 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
     N = model.normals @ R.T
     cos = np.einsum('ij,ij->i', N, -P) / np.linalg.norm(P, axis=1)
     facing = (cos >= s.min_view_cos) & (P[:, 2] > 1e-6)
+    if s.stereo_baseline > 0:   # stereo measures only what the second camera sees too
+        to_right = np.array([s.stereo_baseline, 0.0, 0.0]) - P
+        facing &= np.einsum('ij,ij->i', N, to_right) >= \
+            s.min_view_cos * np.linalg.norm(to_right, axis=1)
     P, N, cos = P[facing], N[facing], cos[facing]
     if prediction is not None:
         q.prediction_error = mean_displacement(model, pose, prediction)
@@ -659,33 +670,30 @@ class ObjectTracker:
             if all(symmetric_distance(self.model, pose, d[0]) > s.ambiguity_distance
                    for d in distinct):
                 distinct.append((pose, q))
-        twins = [t.known_pose() for t in self.twins if t.known_pose() is not None]
-        if self.twins:
+        # a twin verified in this cloud already took its place (the penetration check keeps
+        # this part out of it): only unverified twins make the acquisition ambiguous
+        verified_models = [id(m) for m, _ in self._others]
+        open_twins = [t for t in self.twins if id(t.model) not in verified_models]
+        twins = [t.known_pose() for t in open_twins if t.known_pose() is not None]
+        if open_twins:
             # an identical part elsewhere: only a known pose of this one tells which is which
             if self.reference is None:
                 return TrackUpdate(None, state, distinct[0][1], hint_reason + (
-                    f'ambiguous: the same shape as {", ".join(t.model.name for t in self.twins)}'
+                    f'ambiguous: the same shape as {", ".join(t.model.name for t in open_twins)}'
                     '; an initial pose (hint) is needed to tell them apart; not published'))
-            if len(distinct) >= 2 and len(twins) == 1:
-                # two parts, two known poses: the assignment with the smaller total distance,
-                # if it is clearly (by 20 %) better than the swapped one
-                def cost(d, ref):
-                    return mean_displacement(self.model, d[0], ref)
-                pairs = sorted(((cost(a, self.reference) + cost(b, twins[0]), i)
-                                for i, a in enumerate(distinct)
-                                for j, b in enumerate(distinct) if i != j))
-                best_i = pairs[0][1]
-                swapped = min(c for c, i in pairs if i != best_i)
-                distinct = [distinct[best_i]] if pairs[0][0] < 0.8 * swapped else []
-            else:
-                distinct = [d for d in distinct if all(
-                    mean_displacement(self.model, d[0], self.reference)
-                    < mean_displacement(self.model, d[0], other) for other in twins)]
+            # clearly nearer its own known pose than any twin's, and near enough to it that
+            # the parts cannot have swapped places (they are at least that far apart)
+            distinct = [d for d in distinct
+                        if mean_displacement(self.model, d[0], self.reference)
+                        <= s.twin_reacquire_radius and all(
+                            mean_displacement(self.model, d[0], self.reference)
+                            < 0.5 * mean_displacement(self.model, d[0], other)
+                            for other in twins)]
             if not distinct:
                 return TrackUpdate(None, state, passed[0][1], hint_reason + (
                     'ambiguous: every pose that fits is nearer the known pose of an identical '
                     'part; not published'))
-        if len(distinct) == 1 and not self.twins:
+        if len(distinct) == 1 and not open_twins:
             pose, q = distinct[0]
             return self._start(stamp_ns, pose, q, hint_reason + 'acquired', acquired=True)
         # several places fit (or an identical part exists): only a reference (the last
