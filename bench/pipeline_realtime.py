@@ -14,8 +14,9 @@ free-running at ``rate`` Hz, 640x480, and observes it from this process:
 * CPU per node from ``/proc/<pid>/stat`` (utime + stime over the window, % of one core), the
   observer's own CPU, and the load average.
 
-The peer in the same run is the graph as main configured it (``--peer``): full disparity
-range 0-159 px, every pixel in the cloud, numba's default threading layer (OpenMP here).
+The peer in the same run is the graph as main configured it (``scene:rate:peer``): full
+disparity range 0-159 px, every pixel in the cloud, numba's default threading layer (OpenMP
+here), OpenBLAS with one thread per core, the IP modeller's default point budget.
 
 Usage::
 
@@ -99,6 +100,10 @@ def graph_specs(scene: str, rate: float, peer: bool) -> list:
         if spec.executable == 'stereo_depth_node' and peer:
             spec.parameters.update(min_disparity=0, max_disparity=160, point_decimation=1,
                                    numba_threading_layer='default')
+        if peer:
+            spec.env = {}
+            if spec.executable == 'ip_modeler_node':
+                spec.parameters = {'input_qos': 'reliable'}
     return nodes
 
 
@@ -160,7 +165,7 @@ def run_graph(scene: str, rate: float, seconds: float, peer: bool = False,
     try:
         for spec in specs:
             procs.append((spec, ExecutableProcess(spec.package, spec.executable, (),
-                                                  spec.ros_args())))
+                                                  spec.ros_args(), env=spec.env)))
         t_start = time.monotonic()
         if not spin_until(observer, lambda: len(arrivals[final]) > 0
                           or any(not p.running() for _, p in procs), warmup_timeout):

@@ -36,6 +36,12 @@ import numpy as np
 __all__ = ['NodeSpec', 'Stage', 'run_stage', 'STAGES', 'main']
 
 
+# Environment of every node of the graphs. OpenBLAS starts one spinning thread per core in
+# every process: on a shared 2-core machine an IP fit took 3-9 s with them and 0.7 s with one
+# thread (load ~9). GNU OpenMP threads (Open3D) yield the core when idle instead of spinning.
+GRAPH_ENV: Dict[str, str] = {'OPENBLAS_NUM_THREADS': '1', 'OMP_WAIT_POLICY': 'PASSIVE'}
+
+
 @dataclass
 class NodeSpec:
     """One executable of the graph: package, executable, node name, parameters, remappings."""
@@ -45,6 +51,7 @@ class NodeSpec:
     node_name: str
     parameters: Dict[str, Any] = field(default_factory=dict)
     remappings: Dict[str, str] = field(default_factory=dict)
+    env: Dict[str, str] = field(default_factory=lambda: dict(GRAPH_ENV))
 
     def ros_args(self) -> List[str]:
         """``--ros-args`` list: node name, ``-p name:=value`` and ``-r from:=to``."""
@@ -501,8 +508,9 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
             if live and spec.executable == 'synthetic_camera':
                 spec = NodeSpec(spec.package, spec.executable, spec.node_name,
                                 {**spec.parameters, 'trigger': False,
-                                 'rate': float(stage.live_rate)}, {})
-            proc = ExecutableProcess(spec.package, spec.executable, (), spec.ros_args())
+                                 'rate': float(stage.live_rate)}, {}, spec.env)
+            proc = ExecutableProcess(spec.package, spec.executable, (), spec.ros_args(),
+                                     env=spec.env)
             procs.append((spec, proc))
             if not proc.wait_for_node(observer, spec.node_name, 120.0):
                 raise RuntimeError(f'{spec.package}/{spec.executable} did not start:\n'
