@@ -163,10 +163,16 @@ def run_graph(scene: str, rate: float, seconds: float, peer: bool = False,
                                      for s in specs}}
     final = FINAL_TOPIC[scene]
     try:
-        for spec in specs:
-            procs.append((spec, ExecutableProcess(spec.package, spec.executable, (),
-                                                  spec.ros_args(), env=spec.env)))
         t_start = time.monotonic()
+        # the camera last, once its readers are up (the demo does the same)
+        for spec in sorted(specs, key=lambda n: n.executable == 'synthetic_camera'):
+            proc = ExecutableProcess(spec.package, spec.executable, (), spec.ros_args(),
+                                     env=spec.env)
+            procs.append((spec, proc))
+            if not proc.wait_for_node(observer, spec.node_name, 120.0):
+                raise RuntimeError(f'{spec.executable} did not start:\n{proc.output()[-2000:]}')
+            if spec.executable == 'stereo_depth_node':
+                proc.wait_for_output('warm-up', 60.0)       # kernels loaded
         if not spin_until(observer, lambda: len(arrivals[final]) > 0
                           or any(not p.running() for _, p in procs), warmup_timeout):
             raise RuntimeError(f'no {final} within {warmup_timeout} s')

@@ -122,7 +122,7 @@ def _stereo(scene: str) -> NodeSpec:
                      'point_decimation': 2, 'input_qos': 'reliable'})
 
 
-def _localizer(scene: str, models: Sequence[str]) -> NodeSpec:
+def _localizer(scene: str, models: Sequence[str], static: Sequence[str] = ()) -> NodeSpec:
     """The localiser, started from the objects' poses at the scene's first frame (the track is
     initialised once, as a robot would from its task set-up; afterwards it is pure tracking)."""
     from stereo_depth.synthetic import make_scene
@@ -133,8 +133,10 @@ def _localizer(scene: str, models: Sequence[str]) -> NodeSpec:
         T = poses[name]
         initial += [float(v) for v in T[:3, 3]] + [float(v) for v in quaternion_from_matrix(
             T[:3, :3])]
-    return NodeSpec('object_localizer', 'object_localizer_node', 'object_localizer',
-                    {'models': list(models), 'initial_poses': initial})
+    params: Dict[str, Any] = {'models': list(models), 'initial_poses': initial}
+    if static:
+        params['static_objects'] = list(static)     # localised once, then re-verified
+    return NodeSpec('object_localizer', 'object_localizer_node', 'object_localizer', params)
 
 
 # --- scoring --------------------------------------------------------------------------------
@@ -400,7 +402,7 @@ def _peg_in_hole_stage(name: str = 'peg_in_hole', live_seconds: float = 0.0) -> 
     return Stage(
         name,
         [_camera('peg_in_hole', 3), _stereo('peg_in_hole'),
-         _localizer('peg_in_hole', list(objects)),
+         _localizer('peg_in_hole', list(objects), static=('hole_block',)),
          NodeSpec('contact_correction', 'contact_correction_node', 'contact_correction',
                   {'moving_object': 'peg', 'fixed_object': 'hole_block'},
                   {'moving_pose': '/objects/peg/pose', 'fixed_pose': '/objects/hole_block/pose',
@@ -515,6 +517,8 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
             if not proc.wait_for_node(observer, spec.node_name, 120.0):
                 raise RuntimeError(f'{spec.package}/{spec.executable} did not start:\n'
                                    + proc.output()[-3000:])
+            if spec.executable == 'stereo_depth_node':
+                proc.wait_for_output('warm-up', 60.0)       # kernels loaded
             log(f'  started {spec.package}/{spec.executable} as {spec.node_name}')
 
         def check_alive() -> None:
