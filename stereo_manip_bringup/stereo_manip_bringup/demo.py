@@ -513,8 +513,10 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
         order = sorted(stage.nodes, key=lambda n: live and n.executable == 'synthetic_camera')
         for spec in order:
             if live and spec.executable == 'synthetic_camera':
+                # bounce: the scene plays back and forth, so the peg never jumps from the
+                # bottom of the hole to the start of its approach (a teleport, not a motion)
                 spec = NodeSpec(spec.package, spec.executable, spec.node_name,
-                                {**spec.parameters, 'trigger': False,
+                                {**spec.parameters, 'trigger': False, 'playback': 'bounce',
                                  'rate': float(stage.live_rate)}, {}, spec.env)
             proc = ExecutableProcess(spec.package, spec.executable, (), spec.ros_args(),
                                      env=spec.env)
