@@ -258,9 +258,32 @@ def analyse(arrivals: Dict[str, List[Tuple[int, int]]], w0_ns: int, w1_ns: int,
     }
 
 
+NOTES = ['latency = receipt time in this observer - header stamp of the stereo pair (stamped '
+         'by the camera after rendering)',
+         'drops before the contact node: camera frames with neither a peg pose nor a peg status '
+         'from the localiser',
+         'cpu_ms_per_output_frame: CPU of the node over the window / its output messages']
+
+# node -> the topic whose messages count its processed frames
+_OUTPUT_OF = {'stereo_depth_node': '/points2'}
+
+
+def cpu_per_frame(run: Dict[str, Any]) -> Dict[str, float]:
+    """CPU [ms] per frame a node put out (a load-independent cost): the stereo node per
+    cloud, the localiser per status of its first object."""
+    out = {}
+    first_object = next((t for t in run['topics'] if t.endswith('/status')), None)
+    for node, pct in run['cpu_percent_of_one_core'].items():
+        topic = _OUTPUT_OF.get(node, first_object if node == 'object_localizer' else None)
+        n = run['topics'].get(topic, {}).get('messages', 0) if topic else 0
+        if n:
+            out[node] = pct / 100.0 * run['window_s'] * 1000.0 / n
+    return out
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--runs', nargs='+',
+    parser.add_argument('--runs', nargs='*',
                         default=['peg_in_hole:10', 'peg_in_hole:30', 'peg_in_hole:10:peer',
                                  'revolute_pair:10', 'primitives:10', 'primitives:10:peer'],
                         help='scene:rate[:peer] runs, in order')
@@ -277,8 +300,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     runs: Dict[str, Any] = {}
     previous = results_dir() / f'{opts.out_name}.json'
+    old_notes: List[str] = []
     if opts.update and previous.is_file():
-        runs.update(json.loads(previous.read_text()).get('runs', {}))
+        old = json.loads(previous.read_text())
+        runs.update(old.get('runs', {}))
+        old_notes = [n for n in old.get('notes', []) if n not in NOTES]
     for spec in opts.runs:
         parts = spec.split(':')
         scene, rate, peer = parts[0], float(parts[1]), len(parts) > 2 and parts[2] == 'peer'
@@ -304,6 +330,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         print('     CPU % of one core: ' + ', '.join(
             f'{n} {v:.0f}' for n, v in r['cpu_percent_of_one_core'].items()), flush=True)
 
+    for r in runs.values():
+        if 'error' not in r:
+            r['cpu_ms_per_output_frame'] = cpu_per_frame(r)
     goals = []
     nan = float('nan')
     r10 = runs.get('peg_in_hole@10Hz', {})
@@ -329,13 +358,24 @@ def main(argv: Optional[List[str]] = None) -> int:
         r = runs.get(f'{scene}@10Hz', {})
         goals.append(goal(f'{scene}_10hz_{FINAL_TOPIC[scene].strip("/").replace("/", "_")}'
                           '_rate_hz', 10.0, '>=', r.get('final_rate_hz', nan)))
+    comparison = {}
+    for scene in ('peg_in_hole', 'primitives'):
+        a = runs.get(f'{scene}@10Hz', {})
+        p = runs.get(f'{scene}@10Hz (peer: main configuration)', {})
+        if 'topics' in a and 'topics' in p:
+            comparison[scene] = {
+                'final_rate_hz': {'ours': a['final_rate_hz'], 'peer': p['final_rate_hz']},
+                'final_latency_median_ms': {'ours': a['final_latency_ms']['median'],
+                                            'peer': p['final_latency_ms']['median']},
+                'stereo_cpu_ms_per_frame': {
+                    'ours': a['cpu_ms_per_output_frame'].get('stereo_depth_node', nan),
+                    'peer': p['cpu_ms_per_output_frame'].get('stereo_depth_node', nan)},
+                'load_average_1min_end': {'ours': a['load_average_1min']['end'],
+                                          'peer': p['load_average_1min']['end']}}
     write_report(opts.out_name, goals, runs=runs, seconds_per_run=opts.seconds,
+                 comparison_with_peer_same_run=comparison,
                  latency_bound_at_30hz_ms=opts.bound_ms,
-                 notes=['latency = receipt time in this observer - header stamp of the stereo '
-                        'pair (stamped by the camera after rendering)',
-                        'drops before the contact node: camera frames with neither a peg pose '
-                        'nor a peg status from the localiser']
-                 + ([opts.note] if opts.note else []))
+                 notes=NOTES + old_notes + ([opts.note] if opts.note else []))
     return 0
 
 
