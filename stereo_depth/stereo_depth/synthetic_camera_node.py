@@ -1,7 +1,8 @@
 """``synthetic_camera``: a stereo camera driver that renders built-in scenes (or replays a
 still real pair) and publishes it like real hardware, with exact ground truth.
 
-Published topics (all with the same header stamp per frame):
+Published topics (all with the same header stamp per frame: the time the pair was rendered,
+i.e. its "exposure"; with ``trigger`` false the camera free-runs at ``rate``):
 
 * ``left/image_rect``, ``right/image_rect`` (sensor_msgs/Image, mono8 or rgb8, rectified);
 * ``left/camera_info``, ``right/camera_info`` (sensor_msgs/CameraInfo; right ``P[3] = -fx B``);
@@ -44,10 +45,24 @@ from stereo_depth.synthetic import (
     load_motorcycle, load_stereo_files, RealStereoPair, RenderOptions, SCENES, StereoCamera,
     SyntheticStereo)
 
-__all__ = ['SyntheticCameraNode', 'main', 'SOURCES', 'ENCODINGS']
+__all__ = ['SyntheticCameraNode', 'main', 'SOURCES', 'ENCODINGS', 'PLAYBACKS', 'scene_frame']
 
 SOURCES = ('synthetic', 'motorcycle', 'files')
 ENCODINGS = ('mono8', 'rgb8')
+PLAYBACKS = ('loop', 'bounce')
+
+
+def scene_frame(count: int, n_frames: int, playback: str) -> int:
+    """Scene frame shown at the ``count``-th advanced frame index.
+
+    ``loop`` returns ``count`` (the scene wraps it around itself); ``bounce`` runs 0, 1, ...,
+    n-1, n-2, ..., 1, 0, 1, ... (a triangle wave with period 2 (n - 1)).
+    """
+    if playback == 'loop' or n_frames < 2:
+        return int(count)
+    period = 2 * (n_frames - 1)
+    k = int(count) % period
+    return k if k < n_frames else period - k
 
 
 def _float_range(lo: float, hi: float) -> List[FloatingPointRange]:
@@ -75,6 +90,9 @@ _PARAMS = {
     'frame_step': (1, 'Scene frames advanced per published frame (1 = the scene at its own '
                       'fps when rate matches it; > 1 plays it faster, like a time lapse).',
                    {'integer_range': _int_range(1, 1000)}),
+    'playback': ('loop', 'Scene playback past its last frame: loop (jump back to frame 0, '
+                         'as the scene defines) or bounce (play backwards, then forwards again: '
+                         'the motion stays continuous, no jump for a tracker to lose).', {}),
     'width': (640, 'Image width [px] (synthetic).', {'integer_range': _int_range(16, 4096)}),
     'height': (480, 'Image height [px] (synthetic).', {'integer_range': _int_range(16, 4096)}),
     'fx': (600.0, 'Focal length [px], both axes (synthetic and files sources; > 0).',
@@ -115,6 +133,8 @@ def validate_parameter(name: str, value, current: Dict[str, object]) -> Optional
         return f'unknown source {value!r}; choose one of: {", ".join(SOURCES)}'
     if name == 'scene' and value not in SCENES:
         return f'unknown scene {value!r}; choose one of: {", ".join(SCENES)}'
+    if name == 'playback' and value not in PLAYBACKS:
+        return f'unknown playback {value!r}; choose one of: {", ".join(PLAYBACKS)}'
     if name == 'encoding' and value not in ENCODINGS:
         return f'unsupported encoding {value!r}; choose one of: {", ".join(ENCODINGS)}'
     if name == 'rate' and not (math.isfinite(value) and value > 0):
@@ -153,10 +173,11 @@ class SyntheticCameraNode(Node):
         self._warm = False  # the first frame after a rebuild loads the JIT cache: not "late"
         self.render_errors = 0
         self._pose_pubs: Dict[str, object] = {}
-        self._pub_left = self.create_publisher(Image, 'left/image_rect', 5)
-        self._pub_right = self.create_publisher(Image, 'right/image_rect', 5)
-        self._pub_info_l = self.create_publisher(CameraInfo, 'left/camera_info', 5)
-        self._pub_info_r = self.create_publisher(CameraInfo, 'right/camera_info', 5)
+        # depth 1: a late reader gets the newest frame, never a backlog
+        self._pub_left = self.create_publisher(Image, 'left/image_rect', 1)
+        self._pub_right = self.create_publisher(Image, 'right/image_rect', 1)
+        self._pub_info_l = self.create_publisher(CameraInfo, 'left/camera_info', 1)
+        self._pub_info_r = self.create_publisher(CameraInfo, 'right/camera_info', 1)
         self._pub_depth = self.create_publisher(Image, 'depth_truth', 5)
         self._pub_disp = self.create_publisher(DisparityImage, 'disparity_truth', 5)
         self._pub_occ = self.create_publisher(Image, 'occlusion_truth', 5)
@@ -278,13 +299,11 @@ class SyntheticCameraNode(Node):
                 self.get_logger().error(f'cannot apply the new parameters: {exc}')
                 return
         v = self._values
-        stamp = self.get_clock().now().to_msg()
-        hl = Header(stamp=stamp, frame_id=str(v['left_frame_id']))
-        hr = Header(stamp=stamp, frame_id=str(v['right_frame_id']))
         enc = str(v['encoding'])
         truth = None
         if self._source is not None:
-            left, right, truth = self._source.render(self._frame)
+            left, right, truth = self._source.render(scene_frame(
+                self._frame, self._source.scene.n_frames, str(v['playback'])))
             disparity, depth, occ = truth['disparity'], truth['depth'], truth['occlusion']
             f, baseline = self._source.camera.fx, self._source.camera.baseline
         else:
@@ -292,6 +311,12 @@ class SyntheticCameraNode(Node):
             left, right = s.left, s.right
             disparity, depth, occ = s.disparity, s.depth(), None
             f, baseline = s.fx, s.baseline
+        # Stamped when the pair exists (after rendering), as a camera stamps its exposure: the
+        # renderer's cost is the simulation's, not the camera's, and it is not counted as
+        # latency of the graph downstream.
+        stamp = self.get_clock().now().to_msg()
+        hl = Header(stamp=stamp, frame_id=str(v['left_frame_id']))
+        hr = Header(stamp=stamp, frame_id=str(v['right_frame_id']))
         info_l, info_r = self._infos(hl, hr)
         self._pub_left.publish(numpy_to_image(left, enc, hl))
         self._pub_right.publish(numpy_to_image(right, enc, hr))
@@ -301,10 +326,14 @@ class SyntheticCameraNode(Node):
             if truth is not None:
                 for name, T in truth['poses'].items():
                     self._pose_pubs[name].publish(matrix_to_pose_stamped(T, hl))
-            if v['publish_depth'] and depth is not None:
+            # truth images only for a subscriber (they cost more than the pair itself)
+            if (v['publish_depth'] and depth is not None
+                    and self._pub_depth.get_subscription_count()):
                 self._pub_depth.publish(numpy_to_image(np.ascontiguousarray(depth, np.float32),
                                                        '32FC1', hl))
-            if v['publish_disparity'] and disparity is not None:
+            if (v['publish_disparity'] and disparity is not None
+                    and (self._pub_disp.get_subscription_count()
+                         or self._pub_occ.get_subscription_count())):
                 self._pub_disp.publish(self._disparity_msg(disparity, f, baseline, hl))
                 if occ is not None:
                     self._pub_occ.publish(numpy_to_image(occ.astype(np.uint8) * 255, 'mono8',
