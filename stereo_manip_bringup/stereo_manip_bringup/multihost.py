@@ -9,9 +9,12 @@ on its own host logging every corrected pose on arrival. :func:`summarise` turns
 the corrected-pose rate, the end-to-end latency (arrival - camera stamp; the namespaces share
 one clock) and the bytes each host sent over the LAN.
 
-Every participant uses ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` and UDPv4 only
-(``FASTDDS_BUILTIN_TRANSPORTS=UDPv4``): Fast DDS would otherwise use shared memory between
-namespaces of one kernel and the data would never cross the simulated link.
+Every participant on the simulated LAN uses ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` and
+UDPv4 only (``FASTDDS_BUILTIN_TRANSPORTS=UDPv4``), as between real machines. (Fast DDS 2.14
+already keeps shared memory to participants with the same host id, which it derives from the
+interface addresses, so different namespaces talk UDP anyway; the explicit setting keeps it
+so whatever the version.) The one-host peer uses the defaults: localhost discovery, shared
+memory.
 """
 
 from __future__ import annotations
@@ -71,6 +74,7 @@ class GraphRun:
     counters: Dict[str, Dict[str, int]] = field(default_factory=dict)
     exit_codes: Dict[str, Optional[int]] = field(default_factory=dict)
     ready_s: float = float('nan')
+    cpu_fraction: Dict[str, float] = field(default_factory=dict)   # of one core, camera on
 
 
 def ros_environment(domain_id: int, over_lan: bool) -> Dict[str, str]:
@@ -112,6 +116,15 @@ class _Proc:
         if not self._log.closed:
             self._log.close()
         return self.popen.returncode
+
+
+def _cpu_seconds(pid: int) -> float:
+    """utime + stime [s] of a running process (NaN once it has gone)."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except OSError:
+        return float('nan')
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: int,
@@ -180,6 +193,8 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
             camera = _Proc(f'{host}.{spec.node_name}', argv_on(host, argv), env, log_dir)
             procs.append(camera)
         t_end = time.monotonic() + duration
+        cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
+        t_cpu0 = time.monotonic()
         next_sample = time.monotonic()
         while time.monotonic() < t_end:
             dead = [p.name for p in procs if p.popen.poll() is not None]
@@ -195,6 +210,9 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
                 next_sample += 1.0
             time.sleep(0.1)
         run.end_wall_ns = time.time_ns()
+        elapsed = time.monotonic() - t_cpu0
+        run.cpu_fraction = {p.name: (_cpu_seconds(p.popen.pid) - cpu0.get(p.name, 0.0))
+                            / elapsed for p in procs}
         if lan is not None:
             run.counters = {h: lan.counters(h) for h in lan.hosts}
     except RuntimeError as exc:
