@@ -40,12 +40,13 @@ def _udp_probe(lan: VirtualLan, src: str, dst: str, count: int, gap: float) -> n
         import socket, struct, time
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         s.bind(('{lan.addresses[dst]}', {port}))
-        s.settimeout(3.0)
+        s.settimeout(30.0)                  # the sender may take a while to start
         print('bound', flush=True)
         got = {{}}
         try:
             while len(got) < {count}:
                 data = s.recv(2048)
+                s.settimeout(3.0)
                 k, t = struct.unpack('!Id', data[:12])
                 got[k] = time.time() - t
         except socket.timeout:
