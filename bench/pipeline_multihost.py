@@ -86,8 +86,9 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
         result['camera_host_bytes_per_frame'] = sent / result['camera_rate_hz']
         result['link_utilisation_camera_host'] = sent * 8 / spec['rate']
     lat = result.get('latency_ms', {})
-    print(f"  rate {result.get('rate_hz', 0):.2f} Hz, latency p50 {lat.get('p50', float('nan')):.1f}"
-          f" p90 {lat.get('p90', float('nan')):.1f} max {lat.get('max', float('nan')):.1f} ms, "
+    nan = float('nan')
+    print(f"  rate {result.get('rate_hz', 0):.2f} Hz, latency p50 {lat.get('p50', nan):.1f}"
+          f" p90 {lat.get('p90', nan):.1f} max {lat.get('max', nan):.1f} ms, "
           f"frames with a corrected pose {result.get('frames_with_corrected_pose', 0):.2f}",
           flush=True)
     if lan is not None and result.get('link'):
