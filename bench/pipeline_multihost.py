@@ -33,34 +33,62 @@ Needs root (network namespaces); writes ``bench/results/pipeline_multihost.json`
 from __future__ import annotations
 
 import argparse
+import json
 import os
+from pathlib import Path
 import sys
+import tempfile
 import time
 from typing import Any, Dict, List
 
-from stereo_manip_tools.bench_report import goal, write_report
+from stereo_manip_tools.bench_report import goal, results_dir, write_report
 from stereo_manip_tools.netns import list_namespaces, netns_unavailable_reason, VirtualLan
 
-# name: (rate [bit/s] or None for one host, one-way delay [s], loss, stereo on camera host)
+# name: link rate [bit/s], one-way delay [s], frame loss; where the stereo node runs; DDS profile
 CONDITIONS: Dict[str, Dict[str, Any]] = {
     'one_host': {'lan': False},
     'lan_1g_0.5ms': {'rate': 1e9, 'delay': 0.5e-3, 'loss': 0.0},
     'lan_1g_5ms_loss0.1': {'rate': 1e9, 'delay': 5e-3, 'loss': 0.001},
     'lan_100m_0.5ms': {'rate': 100e6, 'delay': 0.5e-3, 'loss': 0.0},
     'lan_100m_5ms_loss0.1': {'rate': 100e6, 'delay': 5e-3, 'loss': 0.001},
-    'lan_100m_5ms_loss0.1_stereo_on_camera': {'rate': 100e6, 'delay': 5e-3, 'loss': 0.001,
-                                              'stereo_on_camera': True},
+    # the reduction for a link the image pair does not fit: stereo next to the camera, a
+    # cloud of every 4th pixel (~3 mm spacing at 0.45 m = the localiser's voxel) crosses it
+    'lan_100m_5ms_loss0.1_stereo_on_camera_decim4': {
+        'rate': 100e6, 'delay': 5e-3, 'loss': 0.001, 'stereo_on_camera': True,
+        'stereo_parameters': {'point_decimation': 4}},
+    # large samples on a lossy link: writers heartbeat every 20 ms (Fast DDS default 3 s), so
+    # a lost fragment is repaired before the next image replaces the sample
+    'lan_1g_5ms_loss0.1_heartbeat20ms': {'rate': 1e9, 'delay': 5e-3, 'loss': 0.001,
+                                         'fastdds_profile': 'heartbeat20ms'},
 }
 IMAGE_PAIR_BYTES = 2 * 640 * 480          # mono8 left + right, payload only
+FASTDDS_PROFILES = {
+    'heartbeat20ms': '''<?xml version="1.0" encoding="UTF-8"?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <data_writer profile_name="stereo_manip_lan_writer" is_default_profile="true">
+    <times>
+      <heartbeatPeriod><sec>0</sec><nanosec>20000000</nanosec></heartbeatPeriod>
+    </times>
+  </data_writer>
+</profiles>
+''',
+}
 
 
 def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
                   domain: int) -> Dict[str, Any]:
+    from stereo_manip_bringup.demo import _model_points
     from stereo_manip_bringup.multihost import HOSTS, peg_in_hole_placement, run_graph, \
         summarise
 
     placement = peg_in_hole_placement(opts.camera_rate,
-                                      stereo_on_camera=spec.get('stereo_on_camera', False))
+                                      stereo_on_camera=spec.get('stereo_on_camera', False),
+                                      stereo_parameters=spec.get('stereo_parameters'))
+    extra_env = {}
+    if spec.get('fastdds_profile'):
+        path = Path(tempfile.gettempdir()) / f'pipeline_multihost_{spec["fastdds_profile"]}.xml'
+        path.write_text(FASTDDS_PROFILES[spec['fastdds_profile']])
+        extra_env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(path)
     where = {h: [s.node_name for s in specs] for h, specs in placement.items()}
     print(f'== {name}: {spec}', flush=True)
     lan = None
@@ -70,14 +98,17 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
         lan.create()
     try:
         run = run_graph(placement, opts.seconds + opts.warmup + 8.0, domain, lan,
-                        log=lambda s: print(s, flush=True))
+                        log=lambda s: print(s, flush=True), extra_env=extra_env)
     finally:
         if lan is not None:
             left = lan.destroy()
             if left:
                 print(f'  WARNING: could not delete namespaces {left}', flush=True)
-    result = summarise(run, warmup=opts.warmup)
-    result.update(condition=spec, placement=where if lan is not None else 'all on one host',
+    result = summarise(run, warmup=opts.warmup, model_points=_model_points('peg'))
+    result.update(condition=spec, camera_rate_hz_set=opts.camera_rate,
+                  measured_at=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+                  load_average_after=os.getloadavg(),
+                  placement=where if lan is not None else 'all on one host',
                   graph_ready_s=run.ready_s,
                   cpu_fraction_of_one_core={k.split('.', 1)[1]: v
                                             for k, v in run.cpu_fraction.items()})
@@ -89,7 +120,8 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
     nan = float('nan')
     print(f"  rate {result.get('rate_hz', 0):.2f} Hz, latency p50 {lat.get('p50', nan):.1f}"
           f" p90 {lat.get('p90', nan):.1f} max {lat.get('max', nan):.1f} ms, "
-          f"frames with a corrected pose {result.get('frames_with_corrected_pose', 0):.2f}",
+          f"frames with a corrected pose {result.get('frames_with_corrected_pose', 0):.2f}, "
+          f"ADD-S p50 {result.get('add_s_corrected_mm', {}).get('p50', nan):.2f} mm",
           flush=True)
     if lan is not None and result.get('link'):
         print('  link Mbit/s sent: ' + ', '.join(
@@ -106,6 +138,9 @@ def main() -> int:
     parser.add_argument('--camera-rate', type=float, default=15.0, help='camera rate [Hz]')
     parser.add_argument('--conditions', nargs='+', choices=list(CONDITIONS),
                         default=list(CONDITIONS))
+    parser.add_argument('--merge', action='store_true',
+                        help='keep the other conditions of an existing result file (to measure '
+                             'the conditions in several shorter runs)')
     opts = parser.parse_args()
     reason = netns_unavailable_reason()
     if reason is not None:
@@ -115,6 +150,9 @@ def main() -> int:
     load_before = os.getloadavg()
     t0 = time.monotonic()
     results: Dict[str, Any] = {}
+    previous = results_dir() / 'pipeline_multihost.json'
+    if opts.merge and previous.exists():
+        results = json.loads(previous.read_text()).get('conditions', {})
     for name in opts.conditions:
         try:
             results[name] = run_condition(name, CONDITIONS[name], opts, domain)

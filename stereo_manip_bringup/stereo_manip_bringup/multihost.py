@@ -130,7 +130,8 @@ def _cpu_seconds(pid: int) -> float:
 def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: int,
               lan: Any = None, controller_host: str = 'controller',
               ready_timeout: float = 120.0, log_dir: Optional[Path] = None,
-              log: Any = print, stop_after_corrected: int = 0) -> GraphRun:
+              log: Any = print, stop_after_corrected: int = 0,
+              extra_env: Optional[Dict[str, str]] = None) -> GraphRun:
     """Start the graph, then the camera when every perception subscription is matched, listen
     ``duration`` s on the controller, stop everything (SIGINT, then SIGKILL).
 
@@ -139,12 +140,14 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
         ``controller_host``, or None to run every process on this host (the one-host peer).
     :param stop_after_corrected: end early once the controller logged this many corrected
         poses (0: run the whole ``duration``).
+    :param extra_env: added to every participant's environment (e.g. a Fast DDS profile).
     :raises RuntimeError: the graph did not come up within ``ready_timeout`` s or a node died
         (with the tails of every log).
     """
     from stereo_manip_tools.processes import executable_path
 
     env = ros_environment(domain_id, lan is not None)
+    env.update(extra_env or {})
     log_dir = Path(log_dir or tempfile.mkdtemp(prefix='multihost_'))
     log_dir.mkdir(parents=True, exist_ok=True)
 
@@ -243,41 +246,27 @@ def _stats(values: Sequence[float]) -> Dict[str, float]:
             'p95': float(np.percentile(v, 95)), 'max': float(v.max())}
 
 
-def summarise(run: GraphRun, warmup: float = 5.0) -> Dict[str, Any]:
-    """Rate, latency and link figures over the window from ``warmup`` s after the first
-    corrected pose to the end of the run.
+def summarise(run: GraphRun, warmup: float = 5.0,
+              model_points: Optional[np.ndarray] = None) -> Dict[str, Any]:
+    """Pose figures over the window from ``warmup`` s after the first corrected pose to the
+    end of the run; camera and link figures from ``warmup`` s after the camera started.
 
     :returns: corrected poses in the window, their rate [Hz] over arrival times, latency
-        [ms] (arrival - camera stamp) p50/p90/p95/max, camera frames seen by the controller
-        (truth poses; the fraction of frames that produced a corrected pose), and per host the
-        bytes per second it sent over the LAN in the same window (switch counters).
+        [ms] (arrival - camera stamp) p50/p90/p95/max, gaps between arrivals, the fraction of
+        camera frames (truth poses seen by the controller) that produced a corrected pose; the
+        camera rate the controller saw; per host the bytes per second it sent over the LAN
+        (switch counters), the switch's CPU and lateness; with ``model_points`` (peg model,
+        metres) the ADD-S error [mm] of each corrected pose vs the camera's truth for the same
+        stamp (p50/p90/p95/max).
     """
     corrected = [p for p in run.poses if p['topic'] == CORRECTED_TOPIC]
     truth = [p for p in run.poses if p['topic'] == TRUTH_TOPIC]
     out: Dict[str, Any] = {'corrected_total': len(corrected), 'camera_frames_total': len(truth)}
-    if not corrected:
-        return out
-    t_first = min(p['arrival_ns'] for p in corrected)
-    t0 = t_first + int(warmup * 1e9)
-    t1 = run.end_wall_ns
-    win = [p for p in corrected if t0 <= p['arrival_ns'] <= t1]
-    frames = [p for p in truth if t0 <= p['stamp_ns'] <= t1 - int(1e9)]
-    out['first_corrected_after_camera_start_s'] = (t_first - run.camera_start_wall_ns) / 1e9
-    out['window_s'] = (t1 - t0) / 1e9
-    out['corrected_in_window'] = len(win)
-    arrivals = np.array(sorted(p['arrival_ns'] for p in win), float) / 1e9
-    out['rate_hz'] = float((len(arrivals) - 1) / (arrivals[-1] - arrivals[0])) \
-        if len(arrivals) > 2 else 0.0
-    out['latency_ms'] = _stats([(p['arrival_ns'] - p['stamp_ns']) / 1e6 for p in win])
-    gaps = np.diff(arrivals) * 1e3 if len(arrivals) > 1 else []
-    out['gap_ms'] = _stats(gaps)
-    stamps = {p['stamp_ns'] for p in win}
-    out['camera_frames_in_window'] = len(frames)
-    out['camera_rate_hz'] = float(len(frames) / ((t1 - int(1e9) - t0) / 1e9)) if frames \
-        else 0.0
-    out['frames_with_corrected_pose'] = float(
-        sum(p['stamp_ns'] in stamps for p in frames) / len(frames)) if frames else 0.0
-    samples = [s for s in run.switch_samples if t0 <= s['wall_ns'] <= t1]
+    # link figures over the camera's run after the same warm-up, with or without poses
+    t_link = run.camera_start_wall_ns + int(warmup * 1e9)
+    seen = [p for p in truth if t_link <= p['stamp_ns'] <= run.end_wall_ns - int(1e9)]
+    out['camera_rate_hz'] = len(seen) / max((run.end_wall_ns - int(1e9) - t_link) / 1e9, 1e-9)
+    samples = [s for s in run.switch_samples if t_link <= s['wall_ns'] <= run.end_wall_ns]
     if len(samples) >= 2:
         a, b = samples[0], samples[-1]
         dt = (b['wall_ns'] - a['wall_ns']) / 1e9
@@ -296,4 +285,35 @@ def summarise(run: GraphRun, warmup: float = 5.0) -> Dict[str, Any]:
             b['seconds'] - a['seconds'], 1e-9)
         out['switch_lateness_ms'] = {k: v * 1e3 if k != 'n' else v
                                      for k, v in b['lateness_s'].items()}
+    if not corrected:
+        return out
+    t_first = min(p['arrival_ns'] for p in corrected)
+    t0 = t_first + int(warmup * 1e9)
+    t1 = run.end_wall_ns
+    win = [p for p in corrected if t0 <= p['arrival_ns'] <= t1]
+    frames = [p for p in truth if t0 <= p['stamp_ns'] <= t1 - int(1e9)]
+    out['first_corrected_after_camera_start_s'] = (t_first - run.camera_start_wall_ns) / 1e9
+    out['window_s'] = (t1 - t0) / 1e9
+    out['corrected_in_window'] = len(win)
+    arrivals = np.array(sorted(p['arrival_ns'] for p in win), float) / 1e9
+    out['rate_hz'] = float((len(arrivals) - 1) / (arrivals[-1] - arrivals[0])) \
+        if len(arrivals) > 2 else 0.0
+    out['latency_ms'] = _stats([(p['arrival_ns'] - p['stamp_ns']) / 1e6 for p in win])
+    gaps = np.diff(arrivals) * 1e3 if len(arrivals) > 1 else []
+    out['gap_ms'] = _stats(gaps)
+    stamps = {p['stamp_ns'] for p in win}
+    if model_points is not None:
+        from object_localizer.evaluation import add_s
+        from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
+
+        def matrix(pose: Sequence[float]) -> np.ndarray:
+            return make_transform(matrix_from_quaternion(np.array(pose[3:])),
+                                  np.array(pose[:3]))
+        by_stamp = {p['stamp_ns']: p for p in truth}
+        errors = [add_s(matrix(p['pose']), matrix(by_stamp[p['stamp_ns']]['pose']),
+                        model_points) * 1e3 for p in win if p['stamp_ns'] in by_stamp]
+        out['add_s_corrected_mm'] = _stats(errors)
+    out['camera_frames_in_window'] = len(frames)
+    out['frames_with_corrected_pose'] = float(
+        sum(p['stamp_ns'] in stamps for p in frames) / len(frames)) if frames else 0.0
     return out
