@@ -27,7 +27,8 @@ Usage::
     ROS_DOMAIN_ID=76 flock -x /work/coord/cpu.lock .venv/bin/python bench/pipeline_multihost.py
     python bench/pipeline_multihost.py --seconds 20 --conditions one_host lan_1g_0.5ms
 
-Needs root (network namespaces); writes ``bench/results/pipeline_multihost.json``.
+Needs root (network namespaces; without, it says why and exits 0 leaving the results as they
+are); writes ``bench/results/pipeline_multihost.json``.
 """
 
 from __future__ import annotations
@@ -144,8 +145,10 @@ def main() -> int:
     opts = parser.parse_args()
     reason = netns_unavailable_reason()
     if reason is not None:
-        print(f'pipeline_multihost: cannot simulate hosts here: {reason}', file=sys.stderr)
-        return 2
+        # like a skipped test: say why, keep the committed results, do not fail `make bench`
+        print(f'pipeline_multihost: SKIPPED, cannot simulate hosts here: {reason}',
+              file=sys.stderr)
+        return 0
     domain = int(os.environ.get('ROS_DOMAIN_ID') or 76)
     load_before = os.getloadavg()
     t0 = time.monotonic()
