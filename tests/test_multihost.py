@@ -24,8 +24,7 @@ import pytest
 from stereo_manip_tools.netns import list_namespaces, netns_unavailable_reason, VirtualLan
 
 _REASON = netns_unavailable_reason()
-pytestmark = [pytest.mark.process,
-              pytest.mark.skipif(_REASON is not None, reason=f'simulated hosts: {_REASON}')]
+needs_netns = pytest.mark.skipif(_REASON is not None, reason=f'simulated hosts: {_REASON}')
 
 
 def _own(tag: str):
@@ -75,6 +74,8 @@ def _udp_probe(lan: VirtualLan, src: str, dst: str, count: int, gap: float) -> n
     return times
 
 
+@pytest.mark.process
+@needs_netns
 def test_lan_delay_loss_and_cleanup_of_only_its_own_namespaces():
     tag = uuid.uuid4().hex[:6]
     # a namespace that merely looks like ours must survive our clean-up
@@ -105,6 +106,8 @@ def test_lan_delay_loss_and_cleanup_of_only_its_own_namespaces():
     assert _own(tag) == []
 
 
+@pytest.mark.process
+@needs_netns
 def test_failed_creation_removes_what_it_made_and_nothing_else():
     tag = uuid.uuid4().hex[:6]
     clash = f'sm{tag}_second'               # exists already: creating the LAN must fail on it
@@ -123,6 +126,8 @@ def test_lan_rejects_addresses_outside_private_ranges():
         VirtualLan(['a'], subnet='192.168.1.0/24')
 
 
+@pytest.mark.process
+@needs_netns
 def test_peg_in_hole_split_over_three_hosts_reaches_the_controller(tmp_path):
     """camera host: synthetic camera; perception host: stereo + localizer + contact;
     controller host: a client logging the corrected peg pose. 1 Gbit/s, 0.5 ms links."""
@@ -173,3 +178,42 @@ def test_peg_in_hole_split_over_three_hosts_reaches_the_controller(tmp_path):
     assert hosts['controller']['delivered_bytes'] > 0
     assert hosts['perception']['sent_bytes'] > 0
     assert all(math.isfinite(p['pose'][0]) for p in corrected)
+
+
+def test_summarise_rate_latency_accuracy_and_link_on_a_known_log():
+    """The figures the benchmark reports, on a controller log with known answers: a pose every
+    100 ms with 40 ms latency, every 3rd camera frame (30 Hz) corrected, one 10 mm error."""
+    from stereo_manip_bringup.multihost import CORRECTED_TOPIC, GraphRun, summarise, \
+        TRUTH_TOPIC
+
+    t_cam = 1_000_000_000_000
+    poses, samples = [], []
+    identity = [0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0]
+    for k in range(300):                      # 10 s of camera frames at 30 Hz
+        stamp = t_cam + k * 33_333_333
+        poses.append({'topic': TRUTH_TOPIC, 'stamp_ns': stamp, 'arrival_ns': stamp + 1_000_000,
+                      'pose': identity})
+        if k % 3 == 0:
+            pose = list(identity)
+            if k == 150:
+                pose[0] += 0.010              # 10 mm off: ADD-S 10 mm for a pure shift
+            poses.append({'topic': CORRECTED_TOPIC, 'stamp_ns': stamp,
+                          'arrival_ns': stamp + 40_000_000, 'pose': pose})
+    for s in range(11):
+        samples.append({'wall_ns': t_cam + s * 1_000_000_000, 'seconds': float(s),
+                        'cpu_seconds': 0.1 * s, 'lateness_s': {'n': 1, 'p50': 1e-4},
+                        'hosts': {'smx_camera': {'sent_bytes': s * 6_000_000, 'lost_frames': 0,
+                                                 'sent_frames': s * 4000,
+                                                 'delivered_bytes': 0}}})
+    run = GraphRun(poses, {}, t_cam, t_cam + 10_000_000_000, switch_samples=samples)
+    model = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])   # far apart
+    out = summarise(run, warmup=2.0, model_points=model)
+    assert out['rate_hz'] == pytest.approx(10.0, rel=1e-3)
+    assert out['latency_ms']['p50'] == pytest.approx(40.0, abs=1e-6)
+    assert out['latency_ms']['max'] == pytest.approx(40.0, abs=1e-6)
+    assert out['frames_with_corrected_pose'] == pytest.approx(1 / 3, abs=0.02)
+    assert out['camera_rate_hz'] == pytest.approx(30.0, rel=0.05)
+    assert out['add_s_corrected_mm']['max'] == pytest.approx(10.0, abs=1e-6)
+    assert out['add_s_corrected_mm']['p50'] == pytest.approx(0.0, abs=1e-9)
+    assert out['link']['camera']['sent_mbit_per_s'] == pytest.approx(48.0, rel=1e-6)
+    assert out['switch_cpu_fraction'] == pytest.approx(0.1, rel=1e-6)
