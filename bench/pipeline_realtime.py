@@ -14,8 +14,9 @@ free-running at ``rate`` Hz, 640x480, and observes it from this process:
 * CPU per node from ``/proc/<pid>/stat`` (utime + stime over the window, % of one core), the
   observer's own CPU, and the load average.
 
-The peer in the same run is the graph as main configured it (``--peer``): full disparity
-range 0-159 px, every pixel in the cloud, numba's default threading layer (OpenMP here).
+The peer in the same run is the graph as main configured it (``scene:rate:peer``): full
+disparity range 0-159 px, every pixel in the cloud, numba's default threading layer (OpenMP
+here), OpenBLAS with one thread per core, the IP modeller's default point budget.
 
 Usage::
 
@@ -99,6 +100,10 @@ def graph_specs(scene: str, rate: float, peer: bool) -> list:
         if spec.executable == 'stereo_depth_node' and peer:
             spec.parameters.update(min_disparity=0, max_disparity=160, point_decimation=1,
                                    numba_threading_layer='default')
+        if peer:
+            spec.env = {}
+            if spec.executable == 'ip_modeler_node':
+                spec.parameters = {'input_qos': 'reliable'}
     return nodes
 
 
@@ -158,10 +163,16 @@ def run_graph(scene: str, rate: float, seconds: float, peer: bool = False,
                                      for s in specs}}
     final = FINAL_TOPIC[scene]
     try:
-        for spec in specs:
-            procs.append((spec, ExecutableProcess(spec.package, spec.executable, (),
-                                                  spec.ros_args())))
         t_start = time.monotonic()
+        # the camera last, once its readers are up (the demo does the same)
+        for spec in sorted(specs, key=lambda n: n.executable == 'synthetic_camera'):
+            proc = ExecutableProcess(spec.package, spec.executable, (), spec.ros_args(),
+                                     env=spec.env)
+            procs.append((spec, proc))
+            if not proc.wait_for_node(observer, spec.node_name, 120.0):
+                raise RuntimeError(f'{spec.executable} did not start:\n{proc.output()[-2000:]}')
+            if spec.executable == 'stereo_depth_node':
+                proc.wait_for_output('warm-up', 60.0)       # kernels loaded
         if not spin_until(observer, lambda: len(arrivals[final]) > 0
                           or any(not p.running() for _, p in procs), warmup_timeout):
             raise RuntimeError(f'no {final} within {warmup_timeout} s')

@@ -427,7 +427,33 @@ class StereoDepthNode(Node):
 
     # --- processing ----------------------------------------------------------------------------
 
+    def _warm_up(self) -> None:
+        """Match one small random pair with the configured method, so numba's compiled kernels
+        are loaded before the first real pair (otherwise that pair is late by seconds)."""
+        t0 = time.perf_counter()
+        params = dict(self._params)
+        ndisp, dmin = int(params['max_disparity']), int(params['min_disparity'])
+        rng = np.random.default_rng(0)
+        w = ndisp + dmin + 32
+        left = rng.integers(0, 256, (32, w), dtype=np.uint8)
+        right = np.ascontiguousarray(np.roll(left, -(dmin + 1), axis=1))
+        defaults = method_defaults(params['method'])
+        mp = {k: params[k] for k in _METHOD_PARAMS if k in defaults}
+        if params['method'].startswith('opencv'):
+            mp.pop('p1', None)
+            mp.pop('p2', None)
+        try:
+            disp = compute_disparity(left, right, params['method'], ndisp, min_disparity=dmin,
+                                     **mp)
+            cloud_points(disparity_to_depth(disp, 100.0, 0.1), 100.0, 100.0, w / 2, 16.0,
+                         int(params['point_decimation']), bool(params['organized_cloud']))
+        except ValueError as exc:       # e.g. a band the warm-up image cannot hold
+            self.get_logger().warning(f'warm-up skipped: {exc}')
+            return
+        self.get_logger().info(f'warm-up (kernels loaded) in {time.perf_counter() - t0:.2f} s')
+
     def _work(self) -> None:
+        self._warm_up()
         while True:
             with self._lock:
                 while self._pending is None and self._running:
