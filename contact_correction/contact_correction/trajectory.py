@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
-from .contact_relation import ContactPair, penetration_depth
+from .contact_relation import ContactPair, evaluate_contacts, penetration_depth, relative_pose
 from .correction import CorrectionResult, correct_pose
 from .polyhedron import Polyhedron
 from .recognition import (
@@ -85,21 +85,29 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
             return r
         first = first or r
     if check and pen > tol and frame.pool:
-        # last resort: the pairs that penetrate, non-linear step only (any feasible pose)
-        from .contact_relation import evaluate_contacts, relative_pose
-        g = evaluate_contacts(moving, fixed, relative_pose(T_moving, T_fixed), frame.pool)
-        sel = g.distances < 0
-        if guard is not None and len(guard) == len(sel):
-            sel &= guard
-        pairs = [p for p, s in zip(frame.pool, sel) if s]
-        if pairs:
-            kw = dict(kwargs, optimal=False)
-            r = correct_pose(moving, fixed, T_moving, T_fixed, pairs, **kw)
+        # last resort: the pairs that penetrate, non-linear step only (any feasible pose);
+        # pairs found penetrating at the attempt's pose are added and the attempt repeated
+        sel = np.zeros(len(frame.pool), dtype=bool)
+        T_try = np.asarray(T_moving, dtype=float)
+        kw = dict(kwargs, optimal=False)
+        for _ in range(3):
+            g = evaluate_contacts(moving, fixed, relative_pose(T_try, T_fixed), frame.pool)
+            new = g.distances < -tol
+            if guard is not None and len(guard) == len(new) and T_try is T_moving:
+                new &= guard
+            if not np.any(new & ~sel):
+                break
+            sel |= new
+            r = correct_pose(moving, fixed, T_moving, T_fixed,
+                             [p for p, s in zip(frame.pool, sel) if s], **kw)
             r.relation_source = 'recognised, push-out'
             if r.corrected:
                 r.status += ' (push-out: no recognised relation could be enforced and the ' \
                             'observation penetrates)'
                 return r
+            if r.T_nonlinear is None:
+                break
+            T_try = r.T_nonlinear
     if first is None:
         first = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
                                  status='no usable relation; pose passed through',
