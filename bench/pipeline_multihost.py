@@ -98,7 +98,7 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
                          loss=spec['loss'], seed=1)
         lan.create()
     try:
-        run = run_graph(placement, opts.seconds + opts.warmup + 8.0, domain, lan,
+        run = run_graph(placement, opts.seconds + opts.warmup + 4.0, domain, lan,
                         log=lambda s: print(s, flush=True), extra_env=extra_env)
     finally:
         if lan is not None:
@@ -136,7 +136,7 @@ def main() -> int:
                         help='measured window per condition [s] (after the warm-up)')
     parser.add_argument('--warmup', type=float, default=5.0,
                         help='seconds after the first corrected pose that are not measured')
-    parser.add_argument('--camera-rate', type=float, default=15.0, help='camera rate [Hz]')
+    parser.add_argument('--camera-rate', type=float, default=10.0, help='camera rate [Hz]')
     parser.add_argument('--conditions', nargs='+', choices=list(CONDITIONS),
                         default=list(CONDITIONS))
     parser.add_argument('--merge', action='store_true',

@@ -46,14 +46,16 @@ def peg_in_hole_placement(camera_rate: float, stereo_on_camera: bool = False,
                           stereo_parameters: Optional[Dict[str, Any]] = None
                           ) -> Dict[str, List[NodeSpec]]:
     """The demo's peg_in_hole nodes placed on hosts, the camera free-running at
-    ``camera_rate`` [Hz] from the scene's first frame (where the localiser is initialised).
+    ``camera_rate`` [Hz], playing the scene at its own speed (30 fps nominal) back and forth
+    from its first frame (where the localiser is initialised), as the live demo stage does.
 
     :param stereo_on_camera: run the stereo node on the camera host (the point cloud crosses
         the link instead of the image pair).
     :param stereo_parameters: extra stereo node parameters (e.g. a cloud decimation).
     """
     camera, stereo, localizer, contact = STAGES['peg_in_hole']().nodes
-    camera.parameters.update(trigger=False, rate=float(camera_rate), frame_step=1)
+    camera.parameters.update(trigger=False, rate=float(camera_rate), playback='bounce',
+                             frame_step=max(1, int(round(30.0 / camera_rate))))
     camera.remappings.pop('trigger', None)
     stereo.parameters.update(stereo_parameters or {})
     if stereo_on_camera:
@@ -170,8 +172,8 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
                     continue
                 argv = [str(executable_path(spec.package, spec.executable)), '--ros-args',
                         *spec.ros_args()]
-                procs.append(_Proc(f'{host}.{spec.node_name}', argv_on(host, argv), env,
-                                   log_dir))
+                procs.append(_Proc(f'{host}.{spec.node_name}', argv_on(host, argv),
+                                   {**env, **getattr(spec, 'env', {})}, log_dir))
         wait_topics = ['/left/image_rect', '/points2', '/objects/peg/pose']
         listener = _Proc(f'{controller_host}.pose_listener', argv_on(controller_host, [
             sys.executable, '-m', 'stereo_manip_tools.pose_listener', '--out', str(poses_path),
@@ -193,7 +195,8 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
         for host, spec in camera_specs:
             argv = [str(executable_path(spec.package, spec.executable)), '--ros-args',
                     *spec.ros_args()]
-            camera = _Proc(f'{host}.{spec.node_name}', argv_on(host, argv), env, log_dir)
+            camera = _Proc(f'{host}.{spec.node_name}', argv_on(host, argv),
+                           {**env, **getattr(spec, 'env', {})}, log_dir)
             procs.append(camera)
         t_end = time.monotonic() + duration
         cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
