@@ -37,6 +37,7 @@ import argparse
 import json
 import os
 from pathlib import Path
+import signal
 import sys
 import tempfile
 import time
@@ -143,6 +144,12 @@ def main() -> int:
                         help='keep the other conditions of an existing result file (to measure '
                              'the conditions in several shorter runs)')
     opts = parser.parse_args()
+
+    def on_term(*_: Any) -> None:
+        raise KeyboardInterrupt('SIGTERM')
+    # `timeout` sends SIGTERM: unwind like Ctrl-C, so every node is stopped and every namespace
+    # of ours deleted on the way out
+    signal.signal(signal.SIGTERM, on_term)
     reason = netns_unavailable_reason()
     if reason is not None:
         # like a skipped test: say why, keep the committed results, do not fail `make bench`

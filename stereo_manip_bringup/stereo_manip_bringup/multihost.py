@@ -120,6 +120,23 @@ class _Proc:
         return self.popen.returncode
 
 
+def _stop_all(procs: List[_Proc], run: GraphRun) -> None:
+    """Stop every process (SIGINT, SIGKILL after 10 s), also when interrupted half-way: a
+    second Ctrl-C or an error while stopping one must not leave the others running."""
+    try:
+        for p in reversed(procs):
+            run.exit_codes[p.name] = p.stop()
+            run.logs[p.name] = p.output() if p.log_path.exists() else ''
+    finally:
+        for p in procs:
+            if p.popen.poll() is None:
+                p.popen.kill()
+                try:
+                    p.popen.wait(5)
+                except subprocess.TimeoutExpired:
+                    pass
+
+
 def _cpu_seconds(pid: int) -> float:
     """utime + stime [s] of a running process (NaN once it has gone)."""
     try:
@@ -227,9 +244,7 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
         tails = '\n'.join(f'--- {p.name}\n{p.output()[-2500:]}' for p in procs)
         raise RuntimeError(f'{exc}\n{tails}') from None
     finally:
-        for p in reversed(procs):
-            run.exit_codes[p.name] = p.stop()
-            run.logs[p.name] = p.output() if p.log_path.exists() else ''
+        _stop_all(procs, run)
     run.camera_start_wall_ns = t_camera
     run.switch_samples = switch_samples
     if lan is not None:
