@@ -2,9 +2,11 @@
 
 Graph (separate processes from the install tree, as ``make demo`` starts them):
 ``synthetic_camera`` -> ``stereo_depth_node`` (census block matching, 160 disparities) ->
-``object_localizer_node`` with NO initial pose (global acquisition from scratch), on the demo
-scenes ``peg_in_hole`` (peg; hole_block declared static) and ``revolute_pair`` (link_base,
-link_arm), each
+``object_localizer_node`` on the demo scenes ``peg_in_hole`` (peg; hole_block declared static;
+NO initial pose: global acquisition from scratch) and ``revolute_pair`` (link_base, link_arm:
+two identical bricks, which no geometric search can tell apart, so they get the objects' poses
+at frame 0 as hints, as the demo does; in free-running mode the localizer starts later in the
+scene, so the hints are stale and are verified, not trusted), each
 
 - free-running: the camera at ``--rate`` Hz with ``frame_step`` 3 (the scene at 10 fps), for
   ``--seconds``; the scene wraps around at its end (the objects jump back: a real loss);
@@ -34,8 +36,19 @@ from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.processes import ExecutableProcess, make_node, shutdown_node, \
     spin_until
 
-SCENES = {'peg_in_hole': (['hole_block', 'peg'], ['hole_block']),
-          'revolute_pair': (['link_base', 'link_arm'], [])}
+SCENES = {'peg_in_hole': (['hole_block', 'peg'], ['hole_block'], False),
+          'revolute_pair': (['link_base', 'link_arm'], [], True)}
+
+
+def _hints(scene, names):
+    from stereo_depth.synthetic import make_scene
+    from stereo_manip_tools.transforms import quaternion_from_matrix
+    poses = make_scene(scene).poses(0)
+    out = []
+    for n in names:
+        out += [float(v) for v in poses[n][:3, 3]] + \
+            [float(v) for v in quaternion_from_matrix(poses[n][:3, :3])]
+    return out
 
 
 def _args(params, remap=None):
@@ -44,7 +57,7 @@ def _args(params, remap=None):
         if isinstance(v, bool):
             v = 'true' if v else 'false'
         elif isinstance(v, list):
-            v = '[' + ','.join(v) + ']'
+            v = '[' + ','.join(str(x) for x in v) + ']'
         out += ['-p', f'{k}:={v}']
     for a, b in (remap or {}).items():
         out += ['-r', f'{a}:={b}']
@@ -65,7 +78,7 @@ def run(scene, mode, rate, seconds, frames, log):
     from std_msgs.msg import Empty
     from stereo_manip_msgs.msg import TrackStatus
 
-    names, static = SCENES[scene]
+    names, static, hinted = SCENES[scene]
     cam = {'scene': scene, 'frame_step': 3, 'publish_depth': False, 'publish_disparity': False}
     cam.update({'trigger': True} if mode == 'triggered' else {'rate': rate})
     specs = [('stereo_depth', 'synthetic_camera', _args(cam, {'trigger': '/camera_trigger'})),
@@ -73,7 +86,8 @@ def run(scene, mode, rate, seconds, frames, log):
               _args({'method': 'block_matching', 'max_disparity': 160,
                      'input_qos': 'reliable'})),
              ('object_localizer', 'object_localizer_node',
-              _args({'models': names, **({'static_objects': static} if static else {})}))]
+              _args({'models': names, **({'static_objects': static} if static else {}),
+                     **({'initial_poses': _hints(scene, names)} if hinted else {})}))]
     node = make_node(f'bench_live_{scene}')
     qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
     poses = {n: [] for n in names}
@@ -115,7 +129,8 @@ def run(scene, mode, rate, seconds, frames, log):
             p.stop()
             tails[exe] = p.output()[-1500:]
         shutdown_node(node)
-    out = {'scene': scene, 'mode': mode, 'wall_s': wall, 'dead_nodes': dead, 'objects': {},
+    out = {'scene': scene, 'mode': mode, 'wall_s': wall, 'hints': hinted, 'dead_nodes': dead,
+           'objects': {},
            'localizer_log_tail': tails.get('object_localizer_node', '')}
     for n in names:
         pts = prepare_model(load_obj(find_model(n))).points
@@ -171,13 +186,26 @@ def main() -> None:
     parser.add_argument('--frames', type=int, default=40, help='triggered frames')
     parser.add_argument('--scenes', default='peg_in_hole,revolute_pair')
     parser.add_argument('--modes', default='free_running,triggered')
+    parser.add_argument('--rescore', action='store_true',
+                        help='recompute the goals from the runs in the existing JSON')
     args = parser.parse_args()
+    if args.rescore:
+        import json
+        from stereo_manip_tools.bench_report import results_dir
+        old = json.loads((results_dir() / 'localizer_live.json').read_text())
+        summarise(old['runs'], old['load_before'], old['args'])
+        return
     runs = []
     load_before = os.getloadavg()
     for scene in args.scenes.split(','):
         for mode in args.modes.split(','):
             print(f'{scene} {mode} ...', flush=True)
             runs.append(run(scene, mode, args.rate, args.seconds, args.frames, print))
+    summarise(runs, load_before, vars(args))
+
+
+def summarise(runs, load_before, args):
+    """Goals from the runs; a loss never re-acquired leaves the CPU goal unmeasured (NaN)."""
     objs = [o for r in runs for o in r['objects'].values()]
     over = sum(o['published_over_5mm'] for o in objs)
     recov = [x for o in objs for x in o['recovery_cpu_s']]
@@ -186,8 +214,9 @@ def main() -> None:
     published = sum(o['scored'] for o in objs)
     goals = [
         goal('published_poses_over_5mm_add_s', 0, '==', over),
-        goal('losses_not_reacquired', 0, '==', (losses - len(recov)) if losses else 0),
-        goal('reacquisition_cpu_s_max', 1.0, '<=', max(recov) if recov else 0.0),
+        goal('losses_not_reacquired', 0, '==', unrecovered),
+        goal('reacquisition_cpu_s_max', 1.0, '<=',
+             max(recov) if recov and not unrecovered else (float('nan') if losses else 0.0)),
         goal('scored_published_poses', 1, '>=', published),
         goal('nodes_died', 0, '==', sum(len(r['dead_nodes']) for r in runs)),
     ]
@@ -195,7 +224,7 @@ def main() -> None:
                  recovery_cpu_s={'median': float(np.median(recov)) if recov else None,
                                  'p95': float(np.percentile(recov, 95)) if recov else None,
                                  'max': float(max(recov)) if recov else None, 'n': len(recov)},
-                 load_before=load_before, load_after=os.getloadavg(), args=vars(args))
+                 load_before=load_before, load_after=os.getloadavg(), args=args)
 
 
 if __name__ == '__main__':

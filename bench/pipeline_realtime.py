@@ -268,6 +268,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--bound-ms', type=float, default=250.0,
                         help='latency bound claimed at 30 Hz (p95 and max of the final output)')
     parser.add_argument('--out-name', default='pipeline_realtime')
+    parser.add_argument('--note', default='',
+                        help='a line for the notes (e.g. how the CPU lock was held)')
     parser.add_argument('--update', action='store_true',
                         help='keep the other runs of the existing results file (each exclusive '
                              'CPU slot stays short: run the scenes in two invocations)')
@@ -332,7 +334,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                  notes=['latency = receipt time in this observer - header stamp of the stereo '
                         'pair (stamped by the camera after rendering)',
                         'drops before the contact node: camera frames with neither a peg pose '
-                        'nor a peg status from the localiser'])
+                        'nor a peg status from the localiser']
+                 + ([opts.note] if opts.note else []))
     return 0
 
 
