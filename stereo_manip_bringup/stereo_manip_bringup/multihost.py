@@ -43,8 +43,8 @@ TRUTH_TOPIC = '/objects/peg/pose_truth'
 
 
 def peg_in_hole_placement(camera_rate: float, stereo_on_camera: bool = False,
-                          stereo_parameters: Optional[Dict[str, Any]] = None
-                          ) -> Dict[str, List[NodeSpec]]:
+                          stereo_parameters: Optional[Dict[str, Any]] = None,
+                          frame_step: Optional[int] = None) -> Dict[str, List[NodeSpec]]:
     """The demo's peg_in_hole nodes placed on hosts, the camera free-running at
     ``camera_rate`` [Hz], playing the scene at its own speed (30 fps nominal) back and forth
     from its first frame (where the localiser is initialised), as the live demo stage does.
@@ -52,10 +52,13 @@ def peg_in_hole_placement(camera_rate: float, stereo_on_camera: bool = False,
     :param stereo_on_camera: run the stereo node on the camera host (the point cloud crosses
         the link instead of the image pair).
     :param stereo_parameters: extra stereo node parameters (e.g. a cloud decimation).
+    :param frame_step: scene frames per camera frame (default: the scene's own speed,
+        30 / ``camera_rate``; 1 plays it slowly, easy to track on a loaded machine).
     """
     camera, stereo, localizer, contact = STAGES['peg_in_hole']().nodes
     camera.parameters.update(trigger=False, rate=float(camera_rate), playback='bounce',
-                             frame_step=max(1, int(round(30.0 / camera_rate))))
+                             frame_step=int(frame_step) if frame_step else max(
+                                 1, int(round(30.0 / camera_rate))))
     camera.remappings.pop('trigger', None)
     stereo.parameters.update(stereo_parameters or {})
     if stereo_on_camera:
