@@ -62,6 +62,11 @@ CONDITIONS: Dict[str, Dict[str, Any]] = {
     'lan_1g_5ms_loss0.1_heartbeat20ms': {'rate': 1e9, 'delay': 5e-3, 'loss': 0.001,
                                          'fastdds_profile': 'heartbeat20ms'},
     'lan_100m_0.5ms': {'rate': 100e6, 'delay': 0.5e-3, 'loss': 0.0},
+    # the images taken best effort (REP 2003 sensor data) by the stereo node: a pair that lost
+    # a fragment is dropped, the stream goes on
+    'lan_1g_5ms_loss0.1_images_best_effort': {
+        'rate': 1e9, 'delay': 5e-3, 'loss': 0.001,
+        'stereo_parameters': {'input_qos': 'sensor_data'}},
 }
 IMAGE_PAIR_BYTES = 2 * 640 * 480          # mono8 left + right, payload only
 FASTDDS_PROFILES = {

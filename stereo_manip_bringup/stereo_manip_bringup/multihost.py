@@ -317,8 +317,9 @@ def summarise(run: GraphRun, warmup: float = 5.0,
     out['window_s'] = (t1 - t0) / 1e9
     out['corrected_in_window'] = len(win)
     arrivals = np.array(sorted(p['arrival_ns'] for p in win), float) / 1e9
-    out['rate_hz'] = float((len(arrivals) - 1) / (arrivals[-1] - arrivals[0])) \
-        if len(arrivals) > 2 else 0.0
+    # poses per second over the whole window: a stream that stops early counts as stopped
+    out['rate_hz'] = float(len(win) / out['window_s']) if out['window_s'] > 0 else 0.0
+    out['last_corrected_before_end_s'] = (t1 - max(p['arrival_ns'] for p in corrected)) / 1e9
     out['latency_ms'] = _stats([(p['arrival_ns'] - p['stamp_ns']) / 1e6 for p in win])
     gaps = np.diff(arrivals) * 1e3 if len(arrivals) > 1 else []
     out['gap_ms'] = _stats(gaps)
