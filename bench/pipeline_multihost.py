@@ -62,6 +62,10 @@ CONDITIONS: Dict[str, Dict[str, Any]] = {
     'lan_1g_5ms_loss0.1_heartbeat20ms': {'rate': 1e9, 'delay': 5e-3, 'loss': 0.001,
                                          'fastdds_profile': 'heartbeat20ms'},
     'lan_100m_0.5ms': {'rate': 100e6, 'delay': 0.5e-3, 'loss': 0.0},
+    # UDP datagrams no larger than one Ethernet frame (RTPS fragments instead of IP): a lost
+    # frame costs one RTPS fragment, repaired alone; IP reassembly buffers never fill
+    'lan_1g_5ms_loss0.1_rtps_fragments': {'rate': 1e9, 'delay': 5e-3, 'loss': 0.001,
+                                          'fastdds_profile': 'max_message_1400'},
     # the images taken best effort (REP 2003 sensor data) by the stereo node: a pair that lost
     # a fragment is dropped, the stream goes on
     'lan_1g_5ms_loss0.1_images_best_effort': {
@@ -79,6 +83,23 @@ FASTDDS_PROFILES = {
   </data_writer>
 </profiles>
 ''',
+    'max_message_1400': '''<?xml version="1.0" encoding="UTF-8"?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <transport_descriptors>
+    <transport_descriptor>
+      <transport_id>udp_mtu</transport_id>
+      <type>UDPv4</type>
+      <maxMessageSize>1400</maxMessageSize>
+    </transport_descriptor>
+  </transport_descriptors>
+  <participant profile_name="stereo_manip_lan_participant" is_default_profile="true">
+    <rtps>
+      <userTransports><transport_id>udp_mtu</transport_id></userTransports>
+      <useBuiltinTransports>false</useBuiltinTransports>
+    </rtps>
+  </participant>
+</profiles>
+''',
 }
 
 
@@ -91,11 +112,13 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
     placement = peg_in_hole_placement(opts.camera_rate,
                                       stereo_on_camera=spec.get('stereo_on_camera', False),
                                       stereo_parameters=spec.get('stereo_parameters'))
-    extra_env = {}
+    extra_env: Dict[str, Any] = {}
     if spec.get('fastdds_profile'):
         path = Path(tempfile.gettempdir()) / f'pipeline_multihost_{spec["fastdds_profile"]}.xml'
         path.write_text(FASTDDS_PROFILES[spec['fastdds_profile']])
         extra_env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(path)
+        if '<userTransports>' in FASTDDS_PROFILES[spec['fastdds_profile']]:
+            extra_env['FASTDDS_BUILTIN_TRANSPORTS'] = None     # the profile's transport only
     where = {h: [s.node_name for s in specs] for h, specs in placement.items()}
     print(f'== {name}: {spec}', flush=True)
     lan = None

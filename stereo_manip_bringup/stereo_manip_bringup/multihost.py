@@ -153,7 +153,7 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
               lan: Any = None, controller_host: str = 'controller',
               ready_timeout: float = 120.0, log_dir: Optional[Path] = None,
               log: Any = print, stop_after_corrected: int = 0,
-              extra_env: Optional[Dict[str, str]] = None) -> GraphRun:
+              extra_env: Optional[Dict[str, Optional[str]]] = None) -> GraphRun:
     """Start the graph, then the camera when every perception subscription is matched, listen
     ``duration`` s on the controller, stop everything (SIGINT, then SIGKILL).
 
@@ -162,14 +162,19 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
         ``controller_host``, or None to run every process on this host (the one-host peer).
     :param stop_after_corrected: end early once the controller logged this many corrected
         poses (0: run the whole ``duration``).
-    :param extra_env: added to every participant's environment (e.g. a Fast DDS profile).
+    :param extra_env: added to every participant's environment (e.g. a Fast DDS profile);
+        a None value removes that variable.
     :raises RuntimeError: the graph did not come up within ``ready_timeout`` s or a node died
         (with the tails of every log).
     """
     from stereo_manip_tools.processes import executable_path
 
     env = ros_environment(domain_id, lan is not None)
-    env.update(extra_env or {})
+    for key, value in (extra_env or {}).items():
+        if value is None:
+            env.pop(key, None)
+        else:
+            env[key] = value
     log_dir = Path(log_dir or tempfile.mkdtemp(prefix='multihost_'))
     log_dir.mkdir(parents=True, exist_ok=True)
 
