@@ -139,7 +139,7 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
                   measured_at=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
                   load_average_after=os.getloadavg(),
                   placement=where if lan is not None else 'all on one host',
-                  graph_ready_s=run.ready_s,
+                  graph_ready_s=run.ready_s, host_counters_at_end=run.counters,
                   cpu_fraction_of_one_core={k.split('.', 1)[1]: v
                                             for k, v in run.cpu_fraction.items()})
     if lan is not None and result.get('link') and result.get('camera_rate_hz'):

@@ -245,7 +245,7 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
         run.cpu_fraction = {p.name: (_cpu_seconds(p.popen.pid) - cpu0.get(p.name, 0.0))
                             / elapsed for p in procs}
         if lan is not None:
-            run.counters = {h: lan.counters(h) for h in lan.hosts}
+            run.counters = {h: {**lan.counters(h), **lan.ip_stats(h)} for h in lan.hosts}
     except RuntimeError as exc:
         for p in procs:
             p.stop()

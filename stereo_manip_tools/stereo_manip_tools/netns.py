@@ -254,6 +254,20 @@ class VirtualLan:
         return {'rx_bytes': rx_b, 'tx_bytes': tx_b, 'rx_packets': rx_p, 'tx_packets': tx_p,
                 'tx_dropped': tx_d}
 
+    def ip_stats(self, host: str) -> Dict[str, int]:
+        """``host``'s IP reassembly counters (``/proc/net/snmp``: ReasmReqds, ReasmOKs,
+        ReasmFails) and the memory its incomplete fragments hold now (``/proc/net/sockstat``).
+        """
+        out = _run(['ip', 'netns', 'exec', self.namespaces[host], 'cat', '/proc/net/snmp',
+                    '/proc/net/sockstat'])
+        ip = [line.split()[1:] for line in out.splitlines() if line.startswith('Ip:')]
+        stats = {k: int(v) for k, v in zip(ip[0], ip[1]) if k.startswith('Reasm')}
+        for line in out.splitlines():
+            if line.startswith('FRAG:'):
+                f = line.split()
+                stats['frag_memory_bytes'] = int(f[f.index('memory') + 1])
+        return stats
+
     def qdisc_stats(self, host: str) -> str:
         """``tc -s qdisc`` of ``host``'s eth0 (bytes sent, drops and overlimits of the tbf)."""
         return _run(['ip', 'netns', 'exec', self.namespaces[host], 'tc', '-s', 'qdisc', 'show',
