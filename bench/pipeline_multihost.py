@@ -200,6 +200,11 @@ def report(results: Dict[str, Any], opts: argparse.Namespace, load_before: Any,
                 'this kernel); DDS over UDPv4 with SUBNET discovery; latency = arrival at the '
                 'controller host - camera stamp, one shared clock'),
         namespaces_left_after_run=leftovers,
+        notes=('rate_hz = corrected poses arriving in the window / window length; latency and '
+               'ADD-S are over the poses that arrived, so in a run whose stream stalled '
+               '(see last_corrected_before_end_s, frames_with_corrected_pose) a met latency '
+               'goal covers only its first seconds. The stall under loss is IP reassembly '
+               'memory filling (host_counters_at_end: ReasmFails, frag_memory_bytes).'),
         load_average_before=load_before, load_average_after=os.getloadavg(),
         wall_time_s=time.monotonic() - t0)
 
