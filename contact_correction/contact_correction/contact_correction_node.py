@@ -41,7 +41,9 @@ from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_
     path_to_matrices, pose_stamped_to_matrix
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 from stereo_manip_tools.parameters import bool_descriptor as _bool, \
-    float_descriptor as _float, int_descriptor as _int, string_descriptor as _string
+    float_descriptor as _float, int_descriptor as _int, reject_nonfinite_parameters, \
+    string_descriptor as _string
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 
 __all__ = ['ContactCorrectionNode', 'main']
 
@@ -65,6 +67,8 @@ class ContactCorrectionNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('contact_correction', **kwargs)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        reject_nonfinite_parameters(self)
+        self.rejections = InputRejections(self.get_logger())
         self.declare_parameter('moving_object', 'peg', _string(
             'model name (or OBJ/PLY/STL path) of the moving object', read_only=True))
         self.declare_parameter('fixed_object', 'hole_block', _string(
@@ -119,10 +123,12 @@ class ContactCorrectionNode(Node):
         self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
         self.state_pub = self.create_publisher(ContactState, 'contact_state', 10)
         self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
-        self.create_subscription(PoseStamped, 'moving_pose', self._on_moving,
+        self.create_subscription(PoseStamped, 'moving_pose',
+                                 self.rejections.guard(self._on_moving, 'moving_pose'),
                                  qos_profile_sensor_data)
         if not self._static_values():
-            self.create_subscription(PoseStamped, 'fixed_pose', self._on_fixed,
+            self.create_subscription(PoseStamped, 'fixed_pose',
+                                     self.rejections.guard(self._on_fixed, 'fixed_pose'),
                                      qos_profile_sensor_data)
         self.create_service(CorrectTrajectory, 'correct_trajectory', self._on_service)
         self.get_logger().info(
@@ -270,7 +276,7 @@ class ContactCorrectionNode(Node):
 def main(args=None) -> None:
     """Run the node."""
     rclpy.init(args=args)
-    node = ContactCorrectionNode()
+    node = create_node_or_exit(ContactCorrectionNode, 'contact_correction_node')
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -46,7 +46,9 @@ from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_
     numpy_to_point, numpy_to_vector3, path_to_matrices, pose_stamped_to_matrix
 from stereo_manip_tools.sync import StampSynchronizer
 from stereo_manip_tools.parameters import (
-    float_descriptor as _float, int_descriptor as _int, string_descriptor as _string)
+    float_descriptor as _float, int_descriptor as _int, reject_nonfinite_parameters,
+    string_descriptor as _string)
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 
 __all__ = ['JointEstimatorNode', 'estimation_to_msg', 'estimation_to_marker', 'JOINT_TYPE_NAMES',
            'main']
@@ -118,6 +120,9 @@ class JointEstimatorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('joint_estimator', **kwargs)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        reject_nonfinite_parameters(self)
+        self.rejections = InputRejections(self.get_logger())
+        guard = self.rejections.guard
         self.declare_parameter('input_mode', 'two_links', _string(
             "'two_links' (link_a_pose + link_b_pose in a common frame) or 'relative' "
             '(relative_pose: link A in link B)', read_only=True))
@@ -174,14 +179,15 @@ class JointEstimatorNode(Node):
                          history=qos_profile_sensor_data.history)
         self.sync: Optional[StampSynchronizer] = None
         if mode == 'relative':
-            self.create_subscription(PoseStamped, 'relative_pose', self._on_relative, qos)
+            self.create_subscription(PoseStamped, 'relative_pose',
+                                     guard(self._on_relative, 'relative_pose'), qos)
         else:
             tol = int(round(self.get_parameter('sync_tolerance').value * 1e9))
             self.sync = StampSynchronizer(('a', 'b'), tolerance_ns=tol, queue_size=50)
             self.create_subscription(PoseStamped, 'link_a_pose',
-                                     lambda m: self._on_link(m, 'a'), qos)
+                                     guard(lambda m: self._on_link(m, 'a'), 'link_a_pose'), qos)
             self.create_subscription(PoseStamped, 'link_b_pose',
-                                     lambda m: self._on_link(m, 'b'), qos)
+                                     guard(lambda m: self._on_link(m, 'b'), 'link_b_pose'), qos)
         self.get_logger().info(f'joint_estimator: input {mode}, window '
                                f'{self.window.maxlen}, joint type '
                                f'{self.get_parameter("joint_type").value}')
@@ -333,7 +339,7 @@ class JointEstimatorNode(Node):
 def main(args=None) -> None:
     """Run the node."""
     rclpy.init(args=args)
-    node = JointEstimatorNode()
+    node = create_node_or_exit(JointEstimatorNode, 'joint_estimator_node')
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -27,11 +27,12 @@ from sensor_msgs.msg import PointCloud2
 from object_localizer.localization import prepare_model, segment_object_points
 from object_localizer.tracking import ObjectTracker, TrackerSettings
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, \
-    pointcloud2_to_array, stamp_to_ns, xyz_to_pointcloud2
+    read_pointcloud2, stamp_to_ns, xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
-    input_qos_descriptor, input_qos_profile
+    input_qos_descriptor, input_qos_profile, reject_nonfinite_parameters
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 
 __all__ = ['ObjectLocalizerNode', 'main']
 
@@ -42,6 +43,7 @@ class ObjectLocalizerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('object_localizer', **kwargs)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        reject_nonfinite_parameters(self)
         self.declare_parameter('models', ['peg'], ParameterDescriptor(
             type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True,
             description='model names (OBJ files found by stereo_manip_tools.mesh_io.find_model)'))
@@ -64,6 +66,10 @@ class ObjectLocalizerNode(Node):
             type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=True,
             description='optional start poses in the cloud frame, 7 numbers per model in '
                         '`models` order: x y z [m] qx qy qz qw; unset = global search'))
+        self.declare_parameter('max_points', 400_000, ParameterDescriptor(
+            type=ParameterType.PARAMETER_INTEGER, description='larger clouds are voxel-'
+            'downsampled to at most this many points (bounded work per cloud; counted)',
+            integer_range=[IntegerRange(from_value=1000, to_value=5_000_000)]))
         self.declare_parameter('track_length', 300, ParameterDescriptor(
             type=ParameterType.PARAMETER_INTEGER, description='poses kept in each track',
             integer_range=[IntegerRange(from_value=1, to_value=100000)]))
@@ -92,7 +98,9 @@ class ObjectLocalizerNode(Node):
         self.counts = {'received': 0, 'rejected': 0, 'not_found': 0}
         # A full-frame cloud is megabytes: best-effort DDS drops such samples whole when one
         # fragment is lost, so the default is reliable with a short queue (newest kept).
-        self.create_subscription(PointCloud2, 'points2', self._on_cloud,
+        self.rejections = InputRejections(self.get_logger())
+        self.create_subscription(PointCloud2, 'points2',
+                                 self.rejections.guard(self._on_cloud, 'points2'),
                                  input_qos_profile(self.get_parameter('input_qos').value))
         self.get_logger().info(f'localising {", ".join(self.trackers)} in points2')
 
@@ -120,12 +128,17 @@ class ObjectLocalizerNode(Node):
     def _on_cloud(self, msg: PointCloud2) -> None:
         self.counts['received'] += 1
         try:
-            points = pointcloud2_to_array(msg)
+            reading = read_pointcloud2(msg, max_points=self.get_parameter('max_points').value,
+                                       voxel_size=self.get_parameter('voxel_size').value)
         except ValueError as exc:
             self.counts['rejected'] += 1
-            self.get_logger().warning(
-                f'points2 rejected ({self.counts["rejected"]} so far): {exc}')
+            self.rejections.reject(getattr(exc, 'reason', 'invalid'), f'points2 rejected: {exc}')
             return
+        points = reading.points
+        if reading.out_of_bounds or reading.downsampled_from:
+            self.rejections.reject('points_dropped_or_downsampled', f'points2: '
+                                   f'{reading.out_of_bounds} out-of-bounds points dropped, '
+                                   f'{reading.downsampled_from} downsampled to {len(points)}')
         stamp = stamp_to_ns(msg.header.stamp)
         for name, tracker in self.trackers.items():
             try:
@@ -154,7 +167,7 @@ def main(args=None) -> None:
     rclpy.init(args=args)
     node = None
     try:
-        node = ObjectLocalizerNode()
+        node = create_node_or_exit(ObjectLocalizerNode, 'object_localizer_node')
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -55,8 +55,11 @@ class InputRejections:
         if now - self._last.get(reason, -1e9) < self.period:
             return
         self._last[reason] = now
-        log = self.logger.error if error else self.logger.warning
-        log(f'{message} ({reason}: {n} so far)')
+        # one call site per severity: rclpy refuses a severity change at one call site
+        if error:
+            self.logger.error(f'{message} ({reason}: {n} so far)')
+        else:
+            self.logger.warning(f'{message} ({reason}: {n} so far)')
 
     def summary(self) -> str:
         """``'reason n, ...'`` (``'none'`` when nothing was rejected)."""
