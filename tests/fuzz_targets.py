@@ -164,7 +164,7 @@ def contact_target() -> FuzzTarget:
          '-p', 'tolerance:=0.004', '-p', 'penetration_tolerance:=0.004'],
         {'/moving_pose': (PoseStamped, malformed_pose_stamped()),
          '/fixed_pose': (PoseStamped, malformed_pose_stamped())}, good,
-        {'/corrected_pose': PoseStamped}, check, timeout=20.0, pacing=0.01)
+        {'/corrected_pose': PoseStamped}, check, timeout=20.0, pacing=0.01, good_gap=0.2)
 
 
 # --- joint_estimator ------------------------------------------------------------------------

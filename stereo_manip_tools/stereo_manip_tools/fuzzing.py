@@ -215,6 +215,8 @@ class FuzzTarget:
     :ivar outputs: topic -> message class the node publishes.
     :ivar check: ``(received {topic: [msg]}, k)`` -> None when cycle k's output is present
         and correct, else the reason (None also means "done waiting").
+    :ivar good_gap: seconds between two good messages (order across topics is not kept by
+        DDS: e.g. the fixed pose must have arrived before the moving one).
     :ivar pacing: seconds between two malformed messages (the nodes keep a short input
         queue: without pacing most of a burst would be replaced before being read).
     """
@@ -233,6 +235,7 @@ class FuzzTarget:
     qos_depth: int = 50
     burst_strategy: Any = None
     settle: float = 1.0
+    good_gap: float = 0.005
     extra: Dict[str, Any] = field(default_factory=dict)
 
 
@@ -308,7 +311,7 @@ class FuzzSession:
         if not crashed:
             for topic, msg in self.target.good(k):
                 self.publish(topic, msg)
-                self.spin(0.005)
+                self.spin(self.target.good_gap)
 
             def done() -> bool:
                 nonlocal reason
