@@ -294,6 +294,7 @@ def run_kill(rate: float, timeout: float, log) -> Dict[str, Any]:
 def run_soak(rate: float, minutes: float, warmup_s: float, log) -> Dict[str, Any]:
     graph = Graph(rate)
     rss: Dict[str, List[Tuple[float, float]]] = {}
+    loads: List[Tuple[float, float]] = []
     try:
         graph.start()
         pids = graph.pids()
@@ -306,6 +307,7 @@ def run_soak(rate: float, minutes: float, warmup_s: float, log) -> Dict[str, Any
             if now >= next_sample:
                 for name, pid in pids.items():
                     rss.setdefault(name, []).append((now - t0, _rss_mb(pid)))
+                loads.append((round(now - t0, 1), os.getloadavg()[0]))
                 next_sample += 5.0
                 if int(now - t0) % 60 < 5:
                     log(f'  soak {now - t0:.0f} s: ' + ', '.join(
@@ -323,6 +325,7 @@ def run_soak(rate: float, minutes: float, warmup_s: float, log) -> Dict[str, Any
                            'poses': len(graph.arrivals['pose']),
                            'corrected_poses': len(graph.arrivals['corrected'])}
     out['output_rate_hz'] = {k: len(v) / span for k, v in graph.arrivals.items()}
+    out['loadavg_1min_samples'] = loads
     growth = {}
     for name, samples in rss.items():
         t = np.array([s[0] for s in samples])
@@ -354,9 +357,14 @@ def run_soak(rate: float, minutes: float, warmup_s: float, log) -> Dict[str, Any
         first = [d for t, d in pairs if t < mid]
         second = [d for t, d in pairs if t >= mid]
         s1, s2 = _stats(first), _stats(second)
+        minutes_p99 = []
+        for m0 in np.arange(t_origin + warmup_s, t_origin + span, 60.0):
+            window = [d for t, d in pairs if m0 <= t < m0 + 60.0]
+            minutes_p99.append(_stats(window)['p99'])
         lat[node] = {'first_half_s': s1, 'second_half_s': s2,
                      'p99_ratio_second_to_first': s2['p99'] / s1['p99']
-                     if s1['count'] and s2['count'] else float('nan')}
+                     if s1['count'] and s2['count'] else float('nan'),
+                     'p99_per_minute_s': minutes_p99}
     out['latency'] = lat
     out['log_tails'] = {k: v[-1500:] for k, v in logs.items()}
     return out
@@ -403,6 +411,8 @@ def goals_of(sections: Dict[str, Any], cases_goal: int) -> List[Dict[str, Any]]:
         for name, r in sorted(soak['latency'].items()):
             goals.append(goal(f'soak_{name}_latency_p99_second_to_first_half', 1.5, '<=',
                               r['p99_ratio_second_to_first']))
+            goals.append(goal(f'soak_{name}_latency_p99_s', 3.0 if name == 'end_to_end' else 2.0,
+                              '<=', r['second_half_s']['p99']))
     rec = sections.get('recorder')
     if rec:
         for sig in ('SIGINT', 'SIGTERM'):
