@@ -14,7 +14,7 @@ from stereo_manip_msgs import msg as msgs, srv as srvs
 from stereo_manip_tools.testing import fill_message
 
 MESSAGES = ['ContactElement', 'ContactPair', 'ContactState', 'JointEstimate',
-            'ImplicitPolynomial']
+            'ImplicitPolynomial', 'TrackStatus']
 SERVICES = ['CorrectTrajectory', 'EstimateJoint', 'FitImplicitPolynomial']
 
 

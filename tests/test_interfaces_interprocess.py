@@ -12,7 +12,7 @@ from stereo_manip_tools.testing import fill_message, make_node, shutdown_node, s
     wait_for_subscribers
 
 MESSAGES = ['ContactElement', 'ContactPair', 'ContactState', 'JointEstimate',
-            'ImplicitPolynomial']
+            'ImplicitPolynomial', 'TrackStatus']
 SERVICES = ['CorrectTrajectory', 'EstimateJoint', 'FitImplicitPolynomial']
 
 

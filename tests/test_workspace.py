@@ -43,7 +43,7 @@ def test_executables_installed_where_ros2_run_looks(package):
 def test_interface_package_ships_definitions():
     share = Path(get_package_share_directory('stereo_manip_msgs'))
     for name in ['ContactElement', 'ContactPair', 'ContactState', 'JointEstimate',
-                 'ImplicitPolynomial']:
+                 'ImplicitPolynomial', 'TrackStatus']:
         assert (share / 'msg' / f'{name}.msg').is_file()
     for name in ['CorrectTrajectory', 'EstimateJoint', 'FitImplicitPolynomial']:
         assert (share / 'srv' / f'{name}.srv').is_file()

@@ -292,6 +292,7 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
                             ) -> List[Tuple[int, int]]:
     """(vertex of ``vpoly``, face of ``fpoly``) pairs in contact; ``R, t`` map ``vpoly``'s
     frame into ``fpoly``'s."""
+    cos_tol = np.sqrt(max(0.0, 1.0 - sin_tol * sin_tol))
     idx = vpoly.feature_vertices
     V = vpoly.vertices[idx] @ R.T + t
     near = fpoly.in_bbox(V, margin)
@@ -311,9 +312,19 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
     for k in np.flatnonzero(ok):
         v, f = int(idx[ci[k]]), int(cf[k])
         dirs = vpoly.vertex_edge_dirs[v] @ R.T
-        if np.any(dirs @ fpoly.face_normals[f] < -sin_tol) and _cone_enters(
-                V[ci[k]], dirs, vpoly.vertex_edge_lengths[v], fpoly, pen, sin_tol):
-            continue
+        nf = fpoly.face_normals[f]
+        if np.any(dirs @ nf < -sin_tol):
+            # An edge of the vertex runs below the face's plane, so the vertex is not locally
+            # above the face. The pair is still a contact when the vertex belongs to a face of
+            # its own solid lying against this one (opposite normals: a face-face contact, e.g.
+            # the inner corner of a T on a shoulder) and no edge enters the other solid.
+            # Otherwise the face's plane does not separate the solids there: e.g. a vertex
+            # level with a flush, coplanar face beside a slot it slides in (same normals).
+            against = np.any((vpoly.face_normals[vpoly.vertex_faces[v]] @ R.T) @ nf
+                             < -cos_tol)
+            if not against or _cone_enters(V[ci[k]], dirs, vpoly.vertex_edge_lengths[v],
+                                           fpoly, pen, sin_tol):
+                continue
         out.append((v, f))
     return out
 

@@ -23,7 +23,7 @@ from stereo_manip_tools.transforms import check_transform, rotation_log
 from .contact_relation import (
     ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts,
     off_element_distance, penetration_depth, relative_pose)
-from .nonlinear_correction import correct_nonlinear
+from .nonlinear_correction import RESIDUAL_TOLERANCE, correct_nonlinear
 from .optimal_correction import (
     ConstraintDirections, constraint_directions, constraint_matrix, correct_optimal)
 from .polyhedron import Polyhedron
@@ -50,6 +50,9 @@ class CorrectionResult:
     :ivar translation_change: change of the moving origin in the fixed frame [m], (3,).
     :ivar rotation_change: rotation vector of the orientation change, fixed frame [rad], (3,).
     :ivar elapsed: wall time of the correction [s].
+    :ivar relation_source: where the relation came from: 'given', 'detected' (one tolerance)
+        or 'recognised' (model selection + temporal model, :mod:`.recognition`), with
+        ', fallback k' when the k-th alternative relation had to be used.
     """
 
     T_moving: np.ndarray
@@ -66,6 +69,7 @@ class CorrectionResult:
     translation_change: np.ndarray = field(default_factory=lambda: np.zeros(3))
     rotation_change: np.ndarray = field(default_factory=lambda: np.zeros(3))
     elapsed: float = 0.0
+    relation_source: str = ''
 
     @property
     def rotation_rank(self) -> int:
@@ -95,10 +99,11 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                  optimal: bool = True, tolerance: float = 2e-3,
                  penetration_tolerance: Optional[float] = None,
                  angle_tolerance: float = 0.1, max_translation: float = 0.02,
-                 max_rotation: float = 0.35, residual_tolerance: float = 1e-7,
+                 max_rotation: float = 0.35, residual_tolerance: float = RESIDUAL_TOLERANCE,
                  check_penetration: bool = True, penetration_spacing: float = 0.005,
                  element_margin: float = 1e-6,
-                 rank1_method: str = 'auto') -> CorrectionResult:
+                 rank1_method: str = 'auto', prune_off_element: bool = False
+                 ) -> CorrectionResult:
     """Correct the observed pose of the moving object with the contact relation.
 
     :param moving: moving object's polyhedron.
@@ -114,12 +119,17 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
     :param max_translation: largest accepted change of the moving origin [m]; a larger one
         means the pose is far from the relation: passed through.
     :param max_rotation: largest accepted orientation change [rad].
-    :param residual_tolerance: largest accepted contact residual after correction [m].
+    :param residual_tolerance: largest accepted contact residual after correction [m]; the
+        non-linear step converges to it too (one tolerance, :data:`RESIDUAL_TOLERANCE`).
     :param check_penetration: measure penetration before and after (costs time).
     :param penetration_spacing: edge sampling step of the penetration test [m].
     :param rank1_method: see :func:`correct_optimal`.
     :param element_margin: largest accepted distance [m] of a corrected contact point outside
         its bounded elements (the relation must be realised, not only its planes).
+    :param prune_off_element: drop pairs whose corrected contact point lies outside its
+        elements when the rest of the relation has the same constraint rank (e.g. a vertex of
+        a face-face contact beyond the overlap: its plane is the face's plane), instead of
+        refusing the correction.
     """
     t0 = time.perf_counter()
     raw = np.array(T_moving, dtype=float, copy=True) if np.size(T_moving) == 16 \
@@ -157,12 +167,14 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
 
     def solve(length_scale: Optional[float], schedule: tuple):
         nl = correct_nonlinear(moving, fixed, T_rel_E, pairs, length_scale=length_scale,
-                               anchor_schedule=schedule)
+                               anchor_schedule=schedule,
+                               residual_tolerance=residual_tolerance)
         if not nl.converged or nl.max_residual > residual_tolerance:
             return nl, None, '', '', None
         T_rel, method, status = nl.T_rel, 'nonlinear', 'non-linear correction'
         if optimal:
-            opt = correct_optimal(moving, fixed, T_rel_E, nl.T_rel, pairs, rank1_method)
+            opt = correct_optimal(moving, fixed, T_rel_E, nl.T_rel, pairs, rank1_method,
+                                  residual_tolerance=residual_tolerance)
             if opt.max_residual <= residual_tolerance:
                 T_rel = opt.T_rel
                 method = f'optimal/{opt.method}'
@@ -193,6 +205,14 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
     A, geom = cm
     dirs = constraint_directions(A, L)
     T_nl = Tf @ nl.T_rel
+    if _near_degenerate(A, L) and method != 'nonlinear':
+        # fall back to the non-linear result when it is not degenerate itself
+        A_nl, geom_nl = constraint_matrix(moving, fixed, nl.T_rel, pairs)
+        if not _near_degenerate(A_nl, L):
+            T_rel, method, A, geom = nl.T_rel, 'nonlinear', A_nl, geom_nl
+            status = ('non-linear correction (the optimal one reached a degenerate '
+                      'configuration of the relation)')
+            dirs = constraint_directions(A, L)
     if _near_degenerate(A, L):
         return passthrough(
             f'{method} correction reached a degenerate configuration of the relation (Eq. 2 '
@@ -208,6 +228,17 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
             f'{max_rotation:.3g} rad; pose passed through', pairs=pairs, directions=dirs,
             penetration_before=pen_before, T_nonlinear=T_nl)
     off = off_element_distance(moving, fixed, T_rel, pairs)
+    if prune_off_element and off.max(initial=0.0) > element_margin:
+        keep = off <= element_margin
+        if np.any(keep):
+            A_keep = A[keep]
+            dk = constraint_directions(A_keep, L)
+            if dk.constraint_rank == dirs.constraint_rank \
+                    and dk.rotation_rank == dirs.rotation_rank:
+                pairs = [p for p, k in zip(pairs, keep) if k]
+                geom = ContactGeometry(geom.distances[keep], geom.points[keep],
+                                       geom.normals[keep])
+                A, dirs, off = A_keep, dk, off[keep]
     if off.max(initial=0.0) > element_margin:
         k = int(np.argmax(off))
         return passthrough(

@@ -25,7 +25,12 @@ from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 from .contact_relation import ContactPair, evaluate_contacts
 from .polyhedron import Polyhedron, cross3
 
-__all__ = ['NonlinearResult', 'correct_nonlinear', 'apply_screw', 'constraint_rows']
+__all__ = ['NonlinearResult', 'correct_nonlinear', 'apply_screw', 'constraint_rows',
+           'RESIDUAL_TOLERANCE']
+
+#: The one contact residual tolerance [m] of the package: the non-linear step stops there and
+#: every later check (optimal step, acceptance in correct_pose) uses the same value.
+RESIDUAL_TOLERANCE = 1e-9
 
 
 @dataclass
@@ -68,7 +73,7 @@ def constraint_rows(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
 
 def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.ndarray,
                       pairs: Sequence[ContactPair], max_iterations: int = 30,
-                      residual_tolerance: float = 1e-12,
+                      residual_tolerance: float = RESIDUAL_TOLERANCE,
                       length_scale: float | None = None, rcond: float = 1e-6,
                       anchor_schedule: tuple = (3e-2, 3e-3)) -> NonlinearResult:
     """Nearby pose satisfying every contact of ``pairs`` (non-linear step, Takamatsu 2007).

@@ -317,6 +317,10 @@ class Polyhedron:
                 dirs.append(self.edge_directions[e] if a == v else -self.edge_directions[e])
             self.vertex_edge_dirs[v] = np.asarray(dirs)
             self.vertex_edge_lengths[v] = self.edge_lengths[es]
+        # faces incident to each feature vertex (the faces of its edges)
+        self.vertex_faces: Dict[int, np.ndarray] = {
+            v: np.unique(self.edge_faces[es]) for v, es in enumerate(self.vertex_edges)
+            if len(es) > 0}
         self.size = float(np.linalg.norm(self.vertices.max(0) - self.vertices.min(0)))
         self.bbox_min = self.vertices.min(0)
         self.bbox_max = self.vertices.max(0)

@@ -1,8 +1,19 @@
-"""Trajectory mode: correct a whole observed track of the moving object (Section 3, Fig. 9).
+"""Trajectory mode: correct an observed track of the moving object (Section 3, Fig. 9).
 
-Each frame is corrected independently with its own contact relation (detected at the observed
-pose, or given), and reported with the relation, the rank, the constrained and free directions
-and the correction applied (:class:`contact_correction.correction.CorrectionResult`).
+Two ways to get each frame's relation:
+
+* ``recognition=None`` (the per-frame detection of the first version): the relation is
+  detected at each observed pose with one distance tolerance (or given per frame);
+* ``recognition=RecognitionOptions(...)``: the relation is *recognised*
+  (:mod:`contact_correction.recognition`: model selection against the stated pose noise and a
+  temporal model over the track). :class:`ContactCorrector` does it online, frame by frame
+  (the node); :func:`correct_trajectory` back-tracks the whole track (Viterbi) offline.
+
+When the correction with the chosen relation is refused (not satisfiable, degenerate, contact
+points off their elements, penetration left, correction over the limits) the next best
+relations of the frame are tried (fewer or other constraints), and a penetrating observation
+with no usable relation is pushed out by the non-linear step on its penetrating pairs, so that
+penetration is not passed through.
 """
 
 from __future__ import annotations
@@ -11,22 +22,138 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
-from .contact_relation import ContactPair
+from .contact_relation import ContactPair, penetration_depth
 from .correction import CorrectionResult, correct_pose
 from .polyhedron import Polyhedron
+from .recognition import (
+    FrameCandidates, Hypothesis, RecognitionOptions, RelationRecognizer, RelationTracker,
+    recognise_track)
 
-__all__ = ['correct_trajectory', 'trajectory_components']
+__all__ = ['correct_trajectory', 'trajectory_components', 'ContactCorrector',
+           'correct_recognised']
+
+#: alternative relations tried when the chosen one is refused
+MAX_FALLBACKS = 3
+
+
+def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
+                       T_fixed: np.ndarray, chosen: Hypothesis, frame: FrameCandidates,
+                       guard: Optional[np.ndarray] = None,
+                       element_margin: Optional[float] = None,
+                       **kwargs: Any) -> CorrectionResult:
+    """Correct one frame with a recognised relation, falling back to the frame's next best
+    relations and finally to pushing a penetrating observation out.
+
+    :param chosen: the relation chosen for the frame.
+    :param frame: the frame's candidates (pool and scored relations).
+    :param guard: the pool's guard flags (pairs whose penetration is real).
+    :param element_margin: largest accepted distance [m] of a contact point outside its
+        elements after correction (default: ``kwargs['element_margin']``).
+    :param kwargs: passed to :func:`~contact_correction.correction.correct_pose`.
+    """
+    kwargs = dict(kwargs)
+    kwargs.setdefault('prune_off_element', True)
+    if element_margin is not None:
+        # a recognised face-face contact may end with some of its pairs just beyond the
+        # overlap (the free coordinates are kept as observed); within the recognition margin
+        # that is accepted, penetration is still checked
+        kwargs['element_margin'] = max(kwargs.get('element_margin', 0.0), element_margin)
+    check = kwargs.get('check_penetration', True)
+    spacing = kwargs.get('penetration_spacing', 0.005)
+    pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check \
+        else float('nan')
+    tol = max(kwargs.get('residual_tolerance', 1e-9), 1e-6)
+    order = [chosen] + [h for h in frame.ranked() if h.state != chosen.state and h.pairs]
+    first: Optional[CorrectionResult] = None
+    for k, h in enumerate(order[:1 + MAX_FALLBACKS]):
+        if not h.pairs:
+            if not check or pen <= tol:
+                r = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
+                                     status='no contact (recognised: the observation is '
+                                            'explained best without contact); pose passed '
+                                            'through', penetration_before=pen,
+                                     penetration_after=pen)
+                r.relation_source = 'recognised'
+                return r
+            continue        # free but penetrating: the next relation must push it out
+        r = correct_pose(moving, fixed, T_moving, T_fixed, list(h.pairs), **kwargs)
+        r.relation_source = 'recognised' + (f', fallback {k}' if k else '')
+        if r.corrected:
+            if k:
+                r.status += f' (fallback: relation {k + 1} of the frame; the chosen one: ' \
+                            f'{first.status if first else "free"})'
+            return r
+        first = first or r
+    if check and pen > tol and frame.pool:
+        # last resort: the pairs that penetrate, non-linear step only (any feasible pose)
+        from .contact_relation import evaluate_contacts, relative_pose
+        g = evaluate_contacts(moving, fixed, relative_pose(T_moving, T_fixed), frame.pool)
+        sel = g.distances < 0
+        if guard is not None and len(guard) == len(sel):
+            sel &= guard
+        pairs = [p for p, s in zip(frame.pool, sel) if s]
+        if pairs:
+            kw = dict(kwargs, optimal=False)
+            r = correct_pose(moving, fixed, T_moving, T_fixed, pairs, **kw)
+            r.relation_source = 'recognised, push-out'
+            if r.corrected:
+                r.status += ' (push-out: no recognised relation could be enforced and the ' \
+                            'observation penetrates)'
+                return r
+    if first is None:
+        first = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
+                                 status='no usable relation; pose passed through',
+                                 penetration_before=pen)
+    first.relation_source = 'recognised'
+    return first
+
+
+class ContactCorrector:
+    """Online correction of a track: recognition with the temporal model, then correction.
+
+    :param moving: moving object's polyhedron.
+    :param fixed: fixed object's polyhedron.
+    :param recognition: recognition options (noise model, margins, switching cost).
+    :param kwargs: correction options for :func:`~contact_correction.correction.correct_pose`.
+    """
+
+    def __init__(self, moving: Polyhedron, fixed: Polyhedron,
+                 recognition: Optional[RecognitionOptions] = None, **kwargs: Any) -> None:
+        self.moving, self.fixed = moving, fixed
+        self.recognizer = RelationRecognizer(moving, fixed, recognition)
+        self.tracker = RelationTracker(self.recognizer)
+        self.kwargs = kwargs
+
+    def reset(self) -> None:
+        """Forget the track's contact states (after a gap or a jump in time)."""
+        self.tracker.reset()
+
+    def update(self, T_moving: np.ndarray, T_fixed: np.ndarray) -> CorrectionResult:
+        """Correct the next frame of the track."""
+        T_moving = np.asarray(T_moving, dtype=float)
+        T_fixed = np.asarray(T_fixed, dtype=float)
+        if not (np.all(np.isfinite(T_moving)) and np.all(np.isfinite(T_fixed))):
+            return correct_pose(self.moving, self.fixed, T_moving, T_fixed, **self.kwargs)
+        h, fc = self.tracker.update(T_moving, T_fixed)
+        return correct_recognised(self.moving, self.fixed, T_moving, T_fixed, h, fc,
+                                  self.recognizer.last_guard(), self.recognizer.margin,
+                                  **self.kwargs)
 
 
 def correct_trajectory(moving: Polyhedron, fixed: Polyhedron, moving_poses: np.ndarray,
                        fixed_poses: np.ndarray,
                        relations: Optional[Sequence[Optional[Sequence[ContactPair]]]] = None,
-                       **kwargs: Any) -> List[CorrectionResult]:
+                       recognition: Optional[RecognitionOptions] = None,
+                       smooth: bool = True, **kwargs: Any) -> List[CorrectionResult]:
     """Correct every frame of an observed trajectory.
 
     :param moving_poses: observed moving-object poses, shape (N, 4, 4).
     :param fixed_poses: fixed-object poses, shape (N, 4, 4), or one (4, 4) pose for all frames.
-    :param relations: per-frame contact relations (None entries, or None = detect each frame).
+    :param relations: per-frame contact relations (entries None: recognised / detected).
+    :param recognition: recognise the relations (model selection + temporal model) with these
+        options; None = detect each frame with ``kwargs['tolerance']`` (first version).
+    :param smooth: with ``recognition``, back-track the whole track (offline Viterbi) instead
+        of the online choice.
     :param kwargs: passed to :func:`contact_correction.correction.correct_pose`
         (``optimal``, ``tolerance``, ...).
     :raises ValueError: on mismatched lengths (per-frame problems are reported, not raised).
@@ -41,10 +168,22 @@ def correct_trajectory(moving: Polyhedron, fixed: Polyhedron, moving_poses: np.n
                          '(give one per frame, or a single one)')
     if relations is not None and len(relations) != len(Tm):
         raise ValueError(f'{len(relations)} relations for {len(Tm)} frames')
+    chosen = frames = guards = None
+    if recognition is not None:
+        rec = RelationRecognizer(moving, fixed, recognition)
+        chosen, frames, guards = recognise_track(rec, Tm, Tf, smooth=smooth,
+                                                 return_guards=True)
     out = []
     for k in range(len(Tm)):
         rel = relations[k] if relations is not None else None
-        out.append(correct_pose(moving, fixed, Tm[k], Tf[k], rel, **kwargs))
+        if rel is None and chosen is not None and np.all(np.isfinite(Tm[k])) \
+                and np.all(np.isfinite(Tf[k])):
+            out.append(correct_recognised(moving, fixed, Tm[k], Tf[k], chosen[k], frames[k],
+                                          guards[k], rec.margin, **kwargs))
+            continue
+        r = correct_pose(moving, fixed, Tm[k], Tf[k], rel, **kwargs)
+        r.relation_source = 'given' if rel is not None else 'detected'
+        out.append(r)
     return out
 
 

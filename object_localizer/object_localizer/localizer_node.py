@@ -1,38 +1,48 @@
-"""``object_localizer_node``: localises and tracks known models in ``points2``.
+"""``object_localizer_node``: finds, tracks and verifies known models in ``points2``.
 
-Subscribes ``points2`` (sensor_msgs/PointCloud2, sensor-data QoS). For every model named in the
-``models`` parameter publishes ``objects/<name>/pose`` (PoseStamped, the cloud's frame and
-stamp), ``objects/<name>/track`` (nav_msgs/Path of the recent poses) and
-``objects/<name>/cloud`` (PointCloud2: the scene points inside the model's bounding box at the
-found pose, grown by ``segment_margin``; the object's own cloud for the IP modeler).
+Subscribes ``points2`` (sensor_msgs/PointCloud2; organised or not; QoS from ``input_qos``). A
+worker thread always processes the newest cloud (older unprocessed clouds are dropped and
+counted), so the node keeps up with a free-running camera. For every model in ``models``:
+
+- ``objects/<name>/status`` (stereo_manip_msgs/TrackStatus): state, quality, inlier fraction,
+  visible-surface residual, prediction error and reason, for EVERY processed cloud;
+- ``objects/<name>/pose`` (PoseStamped, the cloud's frame and stamp): only poses that passed
+  the quality check (see ``object_localizer/README.md``);
+- ``objects/<name>/track`` (nav_msgs/Path of the last ``track_length`` verified poses) and
+  ``objects/<name>/cloud`` (PointCloud2: the scene points inside the model's box at the pose,
+  grown by ``segment_margin``): built only while someone subscribes.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
 import sys
-from typing import Dict, List
+import threading
+from typing import Dict, List, Optional
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
-    ParameterType, SetParametersResult
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
+    SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 
-from object_localizer.localization import prepare_model, segment_object_points
-from object_localizer.tracking import ObjectTracker, TrackerSettings
-from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, \
-    read_pointcloud2, stamp_to_ns, xyz_to_pointcloud2
+from object_localizer.conversions import cloud_xyz, track_status
+from object_localizer.localization import segment_object_points
+from object_localizer.tracking import ObjectTracker, prepare_tracking_model, SceneCloud, \
+    TrackerSettings, TrackState
+from stereo_manip_msgs.msg import TrackStatus
+from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, stamp_to_ns, \
+    xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
-from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
-    input_qos_descriptor, input_qos_profile, reject_nonfinite_parameters
+    input_qos_descriptor, input_qos_profile, int_descriptor, reject_nonfinite_parameters
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
+from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 
 __all__ = ['ObjectLocalizerNode', 'main']
 
@@ -40,74 +50,123 @@ __all__ = ['ObjectLocalizerNode', 'main']
 class ObjectLocalizerNode(Node):
     """Thin ROS wrapper around :class:`object_localizer.tracking.ObjectTracker`."""
 
+    #: node parameter -> TrackerSettings field (all may be changed at run time)
+    _SETTING_OF_PARAMETER = {
+        'max_correspondence_distance': 'max_distance',
+        'loss_scale': 'loss_scale',
+        'inlier_distance': 'inlier_distance',
+        'min_inlier_fraction': 'min_inlier_fraction',
+        'max_visible_residual': 'max_visible_residual',
+        'max_free_space_fraction': 'max_free_space_fraction',
+        'max_prediction_error': 'max_prediction_error',
+        'max_penetration': 'max_penetration',
+        'static_recheck_period': 'static_recheck_period',
+        'track_length': 'max_history',
+    }
+
     def __init__(self, **kwargs) -> None:
         super().__init__('object_localizer', **kwargs)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         reject_nonfinite_parameters(self)
+        self.rejections = InputRejections(self.get_logger())
         self.declare_parameter('models', ['peg'], ParameterDescriptor(
             type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True,
             description='model names (OBJ files found by stereo_manip_tools.mesh_io.find_model)'))
+        self.declare_parameter('static_objects', Parameter.Type.STRING_ARRAY, ParameterDescriptor(
+            type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True,
+            description='names of `models` that do not move: localised once, then held and '
+                        're-verified every static_recheck_period s'))
         self.declare_parameter('input_qos', 'reliable', input_qos_descriptor('points2'))
         self.declare_parameter('voxel_size', 0.003, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE, read_only=True,
-            description='sampling resolution of model and scene [m]',
+            description='sampling resolution of the acquisition templates [m]',
             floating_point_range=[FloatingPointRange(from_value=0.0005, to_value=0.05)]))
         self.declare_parameter('max_correspondence_distance', 0.01,
-                               _float('ICP correspondence radius [m]', 0.0005, 0.2))
+                               _float('ICP correspondence radius [m] (twice that at first)',
+                                      0.0005, 0.2))
         self.declare_parameter('loss_scale', 0.0015,
                                _float('Tukey M-estimator scale k [m]', 0.0002, 0.1))
+        self.declare_parameter('inlier_distance', 0.003,
+                               _float('largest surface distance [m] of an observed point for a '
+                                      'model sample to count as seen', 0.0005, 0.05))
         self.declare_parameter('min_inlier_fraction', 0.5,
-                               _float('below it the object is searched globally / not found',
-                                      0.0, 1.0))
+                               _float('smallest share of the expected-visible model surface '
+                                      'seen, for a pose to be published', 0.0, 1.0))
+        self.declare_parameter('max_visible_residual', 0.0015,
+                               _float('largest RMS surface residual [m] of a published pose',
+                                      0.0001, 0.05))
+        self.declare_parameter('max_free_space_fraction', 0.15,
+                               _float('largest share of the expected-visible surface the '
+                                      'sensor sees through, for a published pose', 0.0, 1.0))
+        self.declare_parameter('max_prediction_error', 0.02,
+                               _float('largest mean displacement [m] from the constant-velocity '
+                                      'prediction, for a published pose', 0.0005, 1.0))
+        self.declare_parameter('max_penetration', 0.005,
+                               _float('a pose deeper than this [m] inside another verified '
+                                      'object (10 % of its volume) is rejected', 0.0005, 0.1))
+        self.declare_parameter('static_recheck_period', 1.0,
+                               _float('re-verification period of static objects [s of cloud '
+                                      'stamps]', 0.0, 3600.0))
         self.declare_parameter('segment_margin', 0.005,
                                _float('margin around the model box for objects/<name>/cloud [m]',
                                       0.0, 0.1))
         self.declare_parameter('initial_poses', Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=True,
-            description='optional start poses in the cloud frame, 7 numbers per model in '
-                        '`models` order: x y z [m] qx qy qz qw; unset = global search'))
-        self.declare_parameter('max_points', 400_000, ParameterDescriptor(
-            type=ParameterType.PARAMETER_INTEGER, description='larger clouds are voxel-'
-            'downsampled to at most this many points (bounded work per cloud; counted)',
-            integer_range=[IntegerRange(from_value=1000, to_value=5_000_000)]))
-        self.declare_parameter('track_length', 300, ParameterDescriptor(
-            type=ParameterType.PARAMETER_INTEGER, description='poses kept in each track',
-            integer_range=[IntegerRange(from_value=1, to_value=100000)]))
+            description='optional hints of the start poses in the cloud frame, 7 numbers per '
+                        'model in `models` order: x y z [m] qx qy qz qw; verified like any pose '
+                        '(global search when they do not fit); unset = global search'))
+        self.declare_parameter('max_points', 400_000, int_descriptor(
+            'clouds with more valid points are voxel-downsampled to at most this many '
+            '(bounded work per cloud)', 1000, 5_000_000))
+        self.declare_parameter('track_length', 300, int_descriptor(
+            'verified poses kept per object for objects/<name>/track', 2, 100000))
         voxel = self.get_parameter('voxel_size').value
         names = list(self.get_parameter('models').value)
+        static_param = self.get_parameter_or('static_objects', None)
+        static = [s for s in (static_param.value or []) if s] if static_param is not None else []
+        unknown = sorted(set(static) - set(names))
+        if unknown:
+            raise ValueError(f'static_objects {unknown} are not in models {names}')
         initial = self.get_parameter_or('initial_poses', None).value \
             if self.has_parameter('initial_poses') else None
         if initial is not None and len(initial) != 7 * len(names):
             raise ValueError(f'initial_poses has {len(initial)} numbers; expected 7 per model '
                              f'({7 * len(names)} for {names})')
         self.trackers: Dict[str, ObjectTracker] = {}
-        self.pose_pubs = {}
-        self.track_pubs = {}
-        self.cloud_pubs = {}
+        self.pose_pubs, self.status_pubs, self.track_pubs, self.cloud_pubs = {}, {}, {}, {}
         for k, name in enumerate(names):
-            mesh = load_obj(find_model(name))
-            self.trackers[name] = ObjectTracker(prepare_model(mesh, voxel), self._settings())
+            model = prepare_tracking_model(load_obj(find_model(name)), voxel)
+            tracker = ObjectTracker(model, replace(self._settings(), static=name in static))
             if initial is not None:
                 x, y, z, qx, qy, qz, qw = initial[7 * k:7 * k + 7]
-                self.trackers[name].reset(make_transform(
-                    matrix_from_quaternion([qx, qy, qz, qw]), [x, y, z]))
+                tracker.reset(make_transform(matrix_from_quaternion([qx, qy, qz, qw]),
+                                             [x, y, z]))
+            self.trackers[name] = tracker
             self.pose_pubs[name] = self.create_publisher(PoseStamped, f'objects/{name}/pose', 10)
+            self.status_pubs[name] = self.create_publisher(TrackStatus,
+                                                           f'objects/{name}/status', 10)
             self.track_pubs[name] = self.create_publisher(Path, f'objects/{name}/track', 10)
             self.cloud_pubs[name] = self.create_publisher(PointCloud2, f'objects/{name}/cloud',
                                                           10)
-        self.counts = {'received': 0, 'rejected': 0, 'not_found': 0}
-        # A full-frame cloud is megabytes: best-effort DDS drops such samples whole when one
-        # fragment is lost, so the default is reliable with a short queue (newest kept).
-        self.rejections = InputRejections(self.get_logger())
-        self.create_subscription(PointCloud2, 'points2',
-                                 self.rejections.guard(self._on_cloud, 'points2'),
+        # static objects first: the others are checked against their verified poses
+        self._order = sorted(names, key=lambda n: n not in static)
+        self.counts = {'received': 0, 'processed': 0, 'dropped_stale': 0, 'rejected': 0,
+                       'published': 0, 'lost': 0, 'acquired': 0}
+        self._cpu: Dict[str, List[float]] = {n: [] for n in names}
+        self._pending: Optional[PointCloud2] = None
+        self._lock = threading.Lock()            # the pending cloud and the worker's state
+        self._settings_lock = threading.Lock()   # tracker settings vs. the tracker's update
+        self._wake = threading.Condition(self._lock)
+        self._running = True
+        self._worker = threading.Thread(target=self._work, name='localizer', daemon=True)
+        self._worker.start()
+        self.create_subscription(PointCloud2, 'points2', self._on_cloud,
                                  input_qos_profile(self.get_parameter('input_qos').value))
-        self.get_logger().info(f'localising {", ".join(self.trackers)} in points2')
-
-    _SETTING_OF_PARAMETER = {'max_correspondence_distance': 'max_distance',
-                             'loss_scale': 'loss_scale',
-                             'min_inlier_fraction': 'min_inlier_fraction',
-                             'track_length': 'max_history'}
+        self.create_timer(10.0, self._log_stats)
+        self.get_logger().info(
+            f'localising {", ".join(names)} in points2'
+            + (f' ({", ".join(static)} static)' if static else '')
+            + ('; initial poses are hints, verified before use' if initial is not None else ''))
 
     def _settings(self) -> TrackerSettings:
         return TrackerSettings(**{field: self.get_parameter(name).value
@@ -119,47 +178,102 @@ class ObjectLocalizerNode(Node):
             if p.name == 'input_qos' and p.value not in INPUT_QOS_CHOICES:
                 return SetParametersResult(successful=False,
                                            reason=f'input_qos must be one of {INPUT_QOS_CHOICES}')
+            if p.type_ == Parameter.Type.DOUBLE and not np.isfinite(p.value):
+                return SetParametersResult(successful=False, reason=f'{p.name} must be finite')
         changes = {self._SETTING_OF_PARAMETER[p.name]: p.value for p in params
                    if p.name in self._SETTING_OF_PARAMETER}
-        for tracker in getattr(self, 'trackers', {}).values():
-            tracker.settings = replace(tracker.settings, **changes)
+        if changes:
+            with getattr(self, '_settings_lock', threading.Lock()):
+                for tracker in getattr(self, 'trackers', {}).values():
+                    tracker.settings = replace(tracker.settings, **changes)
         return SetParametersResult(successful=True)
 
     def _on_cloud(self, msg: PointCloud2) -> None:
-        self.counts['received'] += 1
+        with self._lock:
+            self.counts['received'] += 1
+            if self._pending is not None:
+                self.counts['dropped_stale'] += 1
+            self._pending = msg
+            self._wake.notify()
+
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                while self._running and self._pending is None:
+                    self._wake.wait(0.5)
+                if not self._running:
+                    return
+                msg, self._pending = self._pending, None
+            try:
+                self._process(msg)
+            except Exception as exc:  # keep the node alive; the reason is logged and counted
+                self.counts['rejected'] += 1
+                self.get_logger().error(f'cloud not processed: {type(exc).__name__}: {exc}')
+
+    def _process(self, msg: PointCloud2) -> None:
         try:
-            reading = read_pointcloud2(msg, max_points=self.get_parameter('max_points').value,
-                                       voxel_size=self.get_parameter('voxel_size').value)
+            scene = SceneCloud(cloud_xyz(msg, self.get_parameter('max_points').value,
+                                         self.get_parameter('voxel_size').value))
         except ValueError as exc:
             self.counts['rejected'] += 1
-            self.rejections.reject(getattr(exc, 'reason', 'invalid'), f'points2 rejected: {exc}')
+            self.rejections.reject(getattr(exc, 'reason', 'unusable_cloud'),
+                                   f'points2 rejected: {exc}')
             return
-        points = reading.points
-        if reading.out_of_bounds or reading.downsampled_from:
-            self.rejections.reject('points_dropped_or_downsampled', f'points2: '
-                                   f'{reading.out_of_bounds} out-of-bounds points dropped, '
-                                   f'{reading.downsampled_from} downsampled to {len(points)}')
+        self.counts['processed'] += 1
         stamp = stamp_to_ns(msg.header.stamp)
-        for name, tracker in self.trackers.items():
-            try:
-                result = tracker.update(points, stamp)
-            except ValueError as exc:
-                self.counts['rejected'] += 1
-                self.get_logger().warning(f'{name}: cloud unusable: {exc}')
+        verified = []
+        for name in self._order:
+            tracker = self.trackers[name]
+            before = tracker.state
+            with self._settings_lock:
+                result = tracker.update(scene, stamp, verified)
+            self._cpu[name].append(result.cpu_seconds)
+            if result.pose is not None:
+                verified.append((tracker.model, result.pose))
+            if result.state == TrackState.LOST and before != TrackState.LOST:
+                self.counts['lost'] += 1
+                self.get_logger().warning(f'{name}: {result.reason}; re-acquiring')
+            if result.acquired:
+                self.counts['acquired'] += 1
+                self.get_logger().info(f'{name}: acquired (quality '
+                                       f'{result.quality.quality:.2f}, '
+                                       f'{result.cpu_seconds:.2f} s CPU)')
+            if result.pose is not None:
+                self.counts['published'] += 1
+                self.pose_pubs[name].publish(PoseStamped(header=msg.header,
+                                                         pose=matrix_to_pose(result.pose)))
+            self.status_pubs[name].publish(track_status(
+                msg.header, name, result.state, result.quality, result.reason))
+            if result.pose is None:
                 continue
-            if result is None:
-                self.counts['not_found'] += 1
-                self.get_logger().warning(f'{name} not found (inlier fraction below threshold;'
-                                          f' {self.counts["not_found"]} so far)')
-                continue
-            pose = PoseStamped(header=msg.header, pose=matrix_to_pose(result.pose))
-            self.pose_pubs[name].publish(pose)
-            segment = segment_object_points(points, tracker.model, result.pose,
-                                            self.get_parameter('segment_margin').value)
-            self.cloud_pubs[name].publish(xyz_to_pointcloud2(segment, msg.header))
-            stamps, poses = zip(*tracker.history)
-            self.track_pubs[name].publish(
-                matrices_to_path(np.array(poses), msg.header.frame_id, stamps))
+            if self.cloud_pubs[name].get_subscription_count() > 0:
+                points = scene.points[np.isfinite(scene.points[:, 2])].astype(float)
+                segment = segment_object_points(points, tracker.model.template, result.pose,
+                                                self.get_parameter('segment_margin').value)
+                self.cloud_pubs[name].publish(xyz_to_pointcloud2(segment, msg.header))
+            if self.track_pubs[name].get_subscription_count() > 0 and tracker.history:
+                stamps, poses = zip(*tracker.history)
+                self.track_pubs[name].publish(
+                    matrices_to_path(np.array(poses), msg.header.frame_id, stamps))
+
+    def _log_stats(self) -> None:
+        parts = []
+        for name, cpu in self._cpu.items():
+            if cpu:
+                ms = 1e3 * np.array(cpu)
+                parts.append(f'{name} {self.trackers[name].state.name} CPU ms/cloud median '
+                             f'{np.median(ms):.1f} p95 {np.percentile(ms, 95):.1f} max '
+                             f'{ms.max():.1f}')
+                cpu.clear()
+        self.get_logger().info(f'counts {self.counts}; ' + '; '.join(parts))
+
+    def destroy_node(self) -> None:
+        with self._lock:
+            self._running = False
+            self._wake.notify_all()
+        if self._worker.is_alive():
+            self._worker.join(timeout=10.0)
+        super().destroy_node()
 
 
 def main(args=None) -> None:

@@ -5,7 +5,6 @@ import pytest
 
 from object_localizer.evaluation import add_s, sample_visible_surface
 from object_localizer.localization import localize, prepare_model, segment_object_points
-from object_localizer.tracking import ObjectTracker, TrackerSettings
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis, transform_points
 
@@ -56,21 +55,6 @@ def test_m_estimator_resists_outliers_near_the_object(models):
         errs[loss] = add_s(res.pose, T, template.points)
     assert errs["tukey"] < 0.0012
     assert errs['tukey'] < 0.75 * errs['l2'], errs
-
-
-def test_tracker_follows_a_moving_object(models):
-    rng = np.random.default_rng(4)
-    tracker = ObjectTracker(prepare_model(models['link_arm']), TrackerSettings(seed=1))
-    worst = 0.0
-    for k in range(6):
-        T = make_transform(rotation_about_axis([0.3, 1, 0.1], 1.0 + 0.03 * k),
-                           [0.004 * k, 0.0, 0.8])
-        res = tracker.update(scene(models, T, rng), k * 33_000_000)
-        assert res is not None
-        if k > 0:
-            assert res.method == 'fine'
-        worst = max(worst, add_s(res.pose, T, tracker.model.points))
-    assert worst < 0.0015 and len(tracker.history) == 6
 
 
 def test_bad_clouds_raise_clear_errors(models):

@@ -49,6 +49,7 @@ __all__ = [
     'disparity_to_depth',
     'depth_to_points',
     'disparity_to_points',
+    'cloud_points',
 ]
 
 _REFINE_DEFAULTS = {
@@ -254,13 +255,19 @@ def method_defaults(method: str) -> dict:
 
 
 def compute_disparity(left: np.ndarray, right: np.ndarray, method: str = 'sgm',
-                      max_disparity: int = 64, **params: Any) -> np.ndarray:
+                      max_disparity: int = 64, min_disparity: int = 0,
+                      **params: Any) -> np.ndarray:
     """Left-view disparity of a rectified pair with a named method.
 
     :param left: left rectified image, (H, W) grey or (H, W, 3) RGB.
     :param right: right rectified image, same shape.
     :param method: one of :func:`available_methods`.
-    :param max_disparity: number of disparity candidates D (0 .. D-1 pixels).
+    :param max_disparity: number of disparity candidates D (min_disparity .. min_disparity +
+        D - 1 pixels); ``stereo_image_proc`` calls it ``disparity_range``.
+    :param min_disparity: smallest disparity searched [px] (>= 0). The pair is cropped to
+        ``left[:, m:]`` and ``right[:, :W - m]`` and matched over 0 .. D-1, so a scene whose
+        disparities lie in a band costs D, not m + D, candidates; columns x < m of the result
+        are NaN (their match would lie outside the right image).
     :param params: method parameters overriding :func:`method_defaults`; unknown names raise.
     :return: (H, W) float32 disparities in pixels, NaN where unknown.
     """
@@ -270,9 +277,23 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, method: str = 'sgm',
         raise ValueError(f"unknown parameter(s) {sorted(unknown)} for method '{method}'; "
                          f'known: {sorted(p)}')
     p.update(params)
-    check_pair(left, right, max_disparity)
-    return METHODS[method].function(np.asarray(left), np.asarray(right), int(max_disparity),
-                                    **p)
+    left, right = np.asarray(left), np.asarray(right)
+    m = int(min_disparity)
+    if m < 0:
+        raise ValueError(f'min_disparity must be >= 0 px, got {m}')
+    if m == 0:
+        check_pair(left, right, max_disparity)
+        return METHODS[method].function(left, right, int(max_disparity), **p)
+    w = left.shape[1]
+    if m + int(max_disparity) > w:
+        raise ValueError(f'min_disparity {m} + max_disparity {max_disparity} exceeds the image '
+                         f'width {w}')
+    lc, rc = np.ascontiguousarray(left[:, m:]), np.ascontiguousarray(right[:, :w - m])
+    check_pair(lc, rc, max_disparity)
+    d = METHODS[method].function(lc, rc, int(max_disparity), **p)
+    out = np.full(left.shape[:2], np.nan, np.float32)
+    out[:, m:] = d + np.float32(m)
+    return out
 
 
 def disparity_to_depth(disparity: np.ndarray, focal_length: float, baseline: float,
@@ -317,3 +338,36 @@ def disparity_to_points(disparity: np.ndarray, fx: float, fy: float, cx: float, 
                         baseline: float, doffs: float = 0.0) -> np.ndarray:
     """Disparity -> (H, W, 3) points in the left optical frame (metres, NaN where unknown)."""
     return depth_to_points(disparity_to_depth(disparity, fx, baseline, doffs), fx, fy, cx, cy)
+
+
+def cloud_points(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                 decimation: int = 1, organized: bool = False,
+                 colours: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points of a depth image for a point cloud, every ``decimation``-th pixel.
+
+    Pixel (u, v) with ``u % s == 0`` and ``v % s == 0`` (s = ``decimation``) is kept, exactly
+    back-projected (no averaging: a mean across a depth edge would invent points between
+    surfaces).
+
+    :param depth: (H, W) metres along the optical axis, NaN where unknown.
+    :param decimation: keep every s-th pixel in both directions (>= 1).
+    :param organized: True: return the (ceil(H/s), ceil(W/s), 3) grid with NaN where unknown
+        (an organised cloud); False: only the finite points, (N, 3).
+    :param colours: optional (H, W, 3) uint8 colours of the left image.
+    :return: (points float32 [m] in the optical frame, colours of those points or None).
+    """
+    s = int(decimation)
+    if s < 1:
+        raise ValueError(f'decimation must be >= 1, got {s}')
+    z = np.asarray(depth, dtype=np.float32)[::s, ::s]
+    hs, ws = z.shape
+    u = (np.arange(ws, dtype=np.float32) * s)[None, :]
+    v = (np.arange(hs, dtype=np.float32) * s)[:, None]
+    pts = np.stack([(u - np.float32(cx)) * z / np.float32(fx),
+                    (v - np.float32(cy)) * z / np.float32(fy), z], axis=-1)
+    rgb = None if colours is None else np.asarray(colours)[::s, ::s]
+    if organized:
+        return pts, rgb
+    ok = np.isfinite(z)
+    return pts[ok], (None if rgb is None else rgb[ok])

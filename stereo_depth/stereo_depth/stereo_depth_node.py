@@ -11,6 +11,22 @@ missing pixels ``min_disparity - 1``, i.e. -1 for the usual rectification), ``de
 (``sensor_msgs/PointCloud2`` x, y, z [m] and rgb for colour input, in the left optical frame of
 the image header).
 
+Only outputs with a subscriber are built (none at all: the pair is not even matched, and
+counted as ``skipped_unsubscribed``). Publishers and subscriptions keep one message (depth 1):
+a slow reader loses old samples instead of queueing them.
+
+Point cloud: every ``point_decimation``-th pixel in both directions; ``organized_cloud`` publishes
+the H/s x W/s grid with NaN points where the depth is unknown (``is_dense`` false), otherwise
+only the valid points (height 1). The search range is ``min_disparity`` .. ``min_disparity +
+max_disparity - 1`` px. The ``stereo_image_proc`` parameter names ``disparity_range``,
+``correlation_window_size``, ``speckle_range``, ``uniqueness_ratio``, ``P1``, ``P2``,
+``disp12_max_diff``, ``stereo_algorithm`` (0 = opencv_bm, 1 = opencv_sgbm) and ``queue_size``
+are accepted as aliases of the node's own parameters (set at start or at run time).
+
+Threads: numba's parallel kernels run on the ``numba_threading_layer`` (default ``workqueue``:
+OpenMP's spinning threads cost ~20 ms CPU per frame that the other nodes of the graph need)
+with ``numba_threads`` threads.
+
 Pairing: left and right images are paired by header stamp, exactly by default or within
 ``sync_tolerance`` seconds; each pair uses the camera infos with the same stamp, else the latest
 received ones. Processing runs in a worker thread on the newest pair only: a pair that is
@@ -23,19 +39,21 @@ processing rate and the counters are logged every ``stats_period`` seconds.
 from __future__ import annotations
 
 from collections import OrderedDict
+import copy
 import threading
 import time
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, RegionOfInterest
 from stereo_msgs.msg import DisparityImage
 
-from stereo_depth.pipeline import (available_methods, compute_disparity, depth_to_points,
+from stereo_depth.pipeline import (available_methods, cloud_points, compute_disparity,
                                    disparity_to_depth, method_defaults)
 from stereo_manip_tools.conversions import (CameraInfoError, image_to_numpy, numpy_to_image,
                                             stamp_to_ns, stereo_parameters_from_camera_info,
@@ -46,7 +64,8 @@ from stereo_manip_tools.parameters import bool_descriptor, float_descriptor, \
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 from stereo_manip_tools.sync import StampSynchronizer
 
-__all__ = ['StereoDepthNode', 'prepare_pair', 'stereo_geometry', 'main', 'SUPPORTED_ENCODINGS']
+__all__ = ['StereoDepthNode', 'prepare_pair', 'stereo_geometry', 'main', 'SUPPORTED_ENCODINGS',
+           'ALIASES', 'alias_value', 'select_numba_threads', 'NUMBA_THREADING_LAYERS']
 
 SUPPORTED_ENCODINGS = ('mono8', '8UC1', 'mono16', '16UC1', 'rgb8', 'bgr8', 'rgba8', 'bgra8')
 
@@ -141,7 +160,23 @@ _PARAMS = {
         'disparity method (stereo_depth.pipeline): ' + ', '.join(available_methods()),
         additional_constraints='one of ' + ', '.join(available_methods()))),
     'max_disparity': (64, int_descriptor(
-        'number of disparity candidates D (0 .. D-1 pixels)', 2, 512)),
+        'number of disparity candidates D (min_disparity .. min_disparity + D - 1 pixels)',
+        2, 512)),
+    'min_disparity': (0, int_descriptor(
+        'smallest disparity searched [px]; set it to the scene\'s nearest-far bound to search '
+        'only the band the scene occupies', 0, 1024)),
+    'point_decimation': (1, int_descriptor(
+        'points2 keeps every n-th pixel in both directions (1 = all; 2 = a quarter of the '
+        'points)', 1, 16)),
+    'organized_cloud': (False, bool_descriptor(
+        'points2 as the organised H/n x W/n grid with NaN where the depth is unknown '
+        '(default: only the valid points, height 1)')),
+    'numba_threading_layer': ('workqueue', string_descriptor(
+        'numba threading layer of the parallel kernels: workqueue (no spinning threads), omp, '
+        'tbb or default (numba\'s choice)', read_only=True,
+        additional_constraints='one of workqueue, omp, tbb, default')),
+    'numba_threads': (0, int_descriptor(
+        'threads of the parallel kernels (0 = one per core)', 0, 256, read_only=True)),
     'sync_tolerance': (0.0, float_descriptor(
         'largest stamp difference [s] between paired left/right images; 0 = exact stamps',
         0.0, 1.0)),
@@ -169,10 +204,73 @@ _PARAMS = {
 }
 
 
+NUMBA_THREADING_LAYERS = ('workqueue', 'omp', 'tbb', 'default')
+
+# stereo_image_proc (disparity_node) name -> (own parameter, conversion, description)
+ALIASES = {
+    'disparity_range': ('max_disparity', int, 'stereo_image_proc name of max_disparity'),
+    'correlation_window_size': ('block_size', int, 'stereo_image_proc name of block_size'),
+    'speckle_range': ('speckle_diff', float, 'stereo_image_proc name of speckle_diff [px]'),
+    'uniqueness_ratio': ('uniqueness', lambda v: float(v) / 100.0,
+                         'stereo_image_proc uniqueness ratio [%] = 100 x uniqueness'),
+    'P1': ('p1', lambda v: int(round(v)), 'stereo_image_proc name of p1'),
+    'P2': ('p2', lambda v: int(round(v)), 'stereo_image_proc name of p2'),
+    'disp12_max_diff': ('lr_max_diff', float, 'stereo_image_proc name of lr_max_diff [px]'),
+    'stereo_algorithm': ('method', lambda v: {0: 'opencv_bm', 1: 'opencv_sgbm'}[int(v)],
+                         'stereo_image_proc algorithm: 0 = opencv_bm, 1 = opencv_sgbm'),
+    'queue_size': ('sync_queue_size', int, 'stereo_image_proc name of sync_queue_size'),
+}
+
+
+def alias_value(alias: str, value: Any) -> Tuple[str, Any]:
+    """(own parameter name, converted value) of a ``stereo_image_proc`` alias.
+
+    :raises ValueError: the value cannot be converted (e.g. stereo_algorithm 2).
+    """
+    target, convert, _ = ALIASES[alias]
+    if isinstance(value, (bool, str)) and target != 'method':
+        raise ValueError(f'{alias} must be a number, got {value!r}')
+    try:
+        return target, convert(value)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f'{alias}={value!r} cannot be used as {target}: {exc}') from exc
+
+
+def select_numba_threads(layer: str, threads: int) -> str:
+    """Choose numba's threading layer and thread count before the first parallel kernel.
+
+    :param layer: one of :data:`NUMBA_THREADING_LAYERS` ('default' keeps numba's choice).
+    :param threads: threads of the parallel kernels (0 = numba's default, one per core).
+    :return: the layer in use after the threads were started.
+    """
+    import numba
+    if layer not in NUMBA_THREADING_LAYERS:
+        raise ValueError(f'numba_threading_layer must be one of {NUMBA_THREADING_LAYERS}, '
+                         f'got {layer!r}')
+    if layer != 'default':
+        numba.config.THREADING_LAYER = layer
+    if threads > 0:
+        numba.set_num_threads(min(int(threads), numba.config.NUMBA_NUM_THREADS))
+    else:
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)   # starts the layer
+    return numba.threading_layer()
+
+
+def _range_violation(name: str, value: Any) -> Optional[str]:
+    """Reason ``value`` is outside the declared range of parameter ``name``, or None."""
+    desc = _PARAMS[name][1]
+    for r in list(desc.integer_range) + list(desc.floating_point_range):
+        if not r.from_value <= value <= r.to_value:
+            return f'{name}={value} is outside [{r.from_value}, {r.to_value}]'
+    return None
+
+
 def validate_parameter(name: str, value: Any, current: Dict[str, Any]) -> Optional[str]:
     """Reason the new value is invalid, or None (cross-parameter rules included)."""
     if name == 'method' and value not in available_methods():
         return f"method must be one of {available_methods()}, got '{value}'"
+    if name == 'numba_threading_layer' and value not in NUMBA_THREADING_LAYERS:
+        return f'numba_threading_layer must be one of {NUMBA_THREADING_LAYERS}, got {value!r}'
     if name == 'input_qos' and value not in INPUT_QOS_CHOICES:
         return f"input_qos must be one of {INPUT_QOS_CHOICES}, got '{value}'"
     if name == 'median' and value % 2 == 0:
@@ -198,6 +296,15 @@ class StereoDepthNode(Node):
         reject_nonfinite_parameters(self)
         for name, (default, desc) in _PARAMS.items():
             self._params[name] = self.declare_parameter(name, default, desc).value
+        for alias, (target, _, text) in ALIASES.items():
+            # Untyped and unset unless given; the callback applies it to its own parameter.
+            value = self.declare_parameter(alias, None, ParameterDescriptor(
+                description=f'{text} (alias; sets {target})', dynamic_typing=True,
+                read_only=_PARAMS[target][1].read_only)).value
+            if value is not None:
+                self._params[target] = alias_value(alias, value)[1]
+        self.numba_layer = select_numba_threads(self._params['numba_threading_layer'],
+                                                int(self._params['numba_threads']))
 
         self._sync = StampSynchronizer(
             ('left', 'right'), tolerance_ns=int(round(self._params['sync_tolerance'] * 1e9)),
@@ -206,16 +313,18 @@ class StereoDepthNode(Node):
                                                                   'right': OrderedDict()}
         self._pending: Optional[Dict[str, Image]] = None
         self.counters: Dict[str, int] = {'received_pairs': 0, 'processed': 0,
-                                         'dropped_stale': 0, 'unpaired_images': 0, 'failed': 0}
+                                         'dropped_stale': 0, 'unpaired_images': 0, 'failed': 0,
+                                         'skipped_unsubscribed': 0}
         self.rejected: Dict[str, int] = {}
         self._last_warning: Dict[str, float] = {}
         self._proc_times: list = []
         self._running = True
 
-        self.pub_disparity = self.create_publisher(DisparityImage, 'disparity', 5)
-        self.pub_depth = self.create_publisher(Image, 'depth', 5)
-        self.pub_points = self.create_publisher(PointCloud2, 'points2', 5)
-        qos = input_qos_profile(self._params['input_qos'], depth=5)
+        self.pub_disparity = self.create_publisher(DisparityImage, 'disparity', 1)
+        self.pub_depth = self.create_publisher(Image, 'depth', 1)
+        self.pub_points = self.create_publisher(PointCloud2, 'points2', 1)
+        qos = copy.copy(input_qos_profile(self._params['input_qos'], depth=1))
+        qos.depth = 1       # drop, do not queue: the newest pair is the one worth matching
         guard = InputRejections(self.get_logger()).guard   # last line of defence
         for side in ('left', 'right'):
             self.create_subscription(Image, f'{side}/image_rect', guard(
@@ -230,7 +339,10 @@ class StereoDepthNode(Node):
         self._worker.start()
         self.get_logger().info(
             f"stereo_depth_node ready: method {self._params['method']}, "
-            f"{self._params['max_disparity']} disparities, sync "
+            f"{self._params['max_disparity']} disparities from {self._params['min_disparity']}, "
+            f"points every {self._params['point_decimation']} px"
+            + (' (organised)' if self._params['organized_cloud'] else '')
+            + f", numba {self.numba_layer} layer, sync "
             + ('exact' if self._params['sync_tolerance'] == 0
                else f"within {self._params['sync_tolerance']} s"))
 
@@ -238,17 +350,30 @@ class StereoDepthNode(Node):
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         current = dict(self._params)
+        updates: Dict[str, Any] = {}
         for p in params:
-            if p.name in _PARAMS:
-                reason = validate_parameter(p.name, p.value, current)
+            name, value = p.name, p.value
+            if name in ALIASES:
+                if p.type_ == Parameter.Type.NOT_SET or value is None:
+                    continue
+                try:
+                    name, value = alias_value(p.name, value)
+                except ValueError as exc:
+                    return SetParametersResult(successful=False, reason=str(exc))
+                reason = _range_violation(name, value)     # rclpy checks only declared names
+                if reason is not None:
+                    return SetParametersResult(successful=False,
+                                               reason=f'{p.name} (alias): {reason}')
+            if name in _PARAMS:
+                reason = validate_parameter(name, value, current)
                 if reason is not None:
                     return SetParametersResult(successful=False, reason=reason)
-                current[p.name] = p.value
+                current[name] = value
+                updates[name] = value
         with self._lock:
-            self._params.update({p.name: p.value for p in params if p.name in _PARAMS})
-            for p in params:
-                if p.name == 'sync_tolerance' and hasattr(self, '_sync'):
-                    self._sync.tolerance_ns = int(round(p.value * 1e9))
+            self._params.update(updates)
+            if 'sync_tolerance' in updates and hasattr(self, '_sync'):
+                self._sync.tolerance_ns = int(round(updates['sync_tolerance'] * 1e9))
         return SetParametersResult(successful=True)
 
     # --- input ---------------------------------------------------------------------------------
@@ -302,7 +427,33 @@ class StereoDepthNode(Node):
 
     # --- processing ----------------------------------------------------------------------------
 
+    def _warm_up(self) -> None:
+        """Match one small random pair with the configured method, so numba's compiled kernels
+        are loaded before the first real pair (otherwise that pair is late by seconds)."""
+        t0 = time.perf_counter()
+        params = dict(self._params)
+        ndisp, dmin = int(params['max_disparity']), int(params['min_disparity'])
+        rng = np.random.default_rng(0)
+        w = ndisp + dmin + 32
+        left = rng.integers(0, 256, (32, w), dtype=np.uint8)
+        right = np.ascontiguousarray(np.roll(left, -(dmin + 1), axis=1))
+        defaults = method_defaults(params['method'])
+        mp = {k: params[k] for k in _METHOD_PARAMS if k in defaults}
+        if params['method'].startswith('opencv'):
+            mp.pop('p1', None)
+            mp.pop('p2', None)
+        try:
+            disp = compute_disparity(left, right, params['method'], ndisp, min_disparity=dmin,
+                                     **mp)
+            cloud_points(disparity_to_depth(disp, 100.0, 0.1), 100.0, 100.0, w / 2, 16.0,
+                         int(params['point_decimation']), bool(params['organized_cloud']))
+        except ValueError as exc:       # e.g. a band the warm-up image cannot hold
+            self.get_logger().warning(f'warm-up skipped: {exc}')
+            return
+        self.get_logger().info(f'warm-up (kernels loaded) in {time.perf_counter() - t0:.2f} s')
+
     def _work(self) -> None:
+        self._warm_up()
         while True:
             with self._lock:
                 while self._pending is None and self._running:
@@ -325,48 +476,71 @@ class StereoDepthNode(Node):
                 self.get_logger().error(f'processing failed: {type(exc).__name__}: {exc}')
 
     def _process(self, left: Image, right: Image, infos, params: Dict[str, Any]) -> None:
+        want_disparity = self.pub_disparity.get_subscription_count() > 0
+        want_depth = self.pub_depth.get_subscription_count() > 0
+        want_points = params['publish_points'] and self.pub_points.get_subscription_count() > 0
+        if not (want_disparity or want_depth or want_points):
+            with self._lock:
+                self.counters['skipped_unsubscribed'] += 1
+            return
         t0 = time.perf_counter()
         limg, rimg, colours = prepare_pair(left, right)
         h, w = limg.shape[:2]
         geo = stereo_geometry(infos[0], infos[1], w, h)
         method = params['method']
-        ndisp = int(params['max_disparity'])
-        if ndisp > w:
-            raise InputError('invalid', f'max_disparity {ndisp} exceeds the image width {w}')
+        ndisp, dmin = int(params['max_disparity']), int(params['min_disparity'])
+        if ndisp + dmin > w:
+            raise InputError('invalid', f'min_disparity {dmin} + max_disparity {ndisp} exceeds '
+                                        f'the image width {w}')
         defaults = method_defaults(method)
         mp = {k: params[k] for k in _METHOD_PARAMS if k in defaults}
         if method.startswith('opencv'):
             # OpenCV SGBM keeps its own P1 = 8 bs^2, P2 = 32 bs^2 (node p1/p2 are for SGM)
             mp.pop('p1', None)
             mp.pop('p2', None)
-        disp = compute_disparity(limg, rimg, method, ndisp, **mp)
-        # Disparity relative to the principal points, as DisparityImage defines it.
-        disp_adj = disp + np.float32(geo['doffs'])
+        disp = compute_disparity(limg, rimg, method, ndisp, min_disparity=dmin, **mp)
         depth = disparity_to_depth(disp, geo['fx'], geo['baseline'], geo['doffs'])
         header = left.header
-
-        dmsg = DisparityImage()
-        dmsg.header = header
-        invalid = np.float32(geo['doffs'] - 1.0)            # below min_disparity
-        out = np.where(np.isfinite(disp_adj), disp_adj, invalid).astype(np.float32)
-        dmsg.image = numpy_to_image(out, '32FC1', header)
-        dmsg.f = geo['fx']
-        dmsg.t = geo['baseline']
-        dmsg.valid_window = RegionOfInterest(x_offset=0, y_offset=0, height=h, width=w)
-        dmsg.min_disparity = float(geo['doffs'])
-        dmsg.max_disparity = float(ndisp - 1 + geo['doffs'])
-        dmsg.delta_d = 1.0 / 16.0
         with self._lock:
             # counted before publishing, so a subscriber never sees more outputs than counts
             self.counters['processed'] += 1
             self._proc_times.append(time.perf_counter() - t0)
-        self.pub_disparity.publish(dmsg)
-        self.pub_depth.publish(numpy_to_image(depth, '32FC1', header))
-        if params['publish_points']:
-            pts = depth_to_points(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'])
-            ok = np.isfinite(depth)
-            rgb = colours[ok] if colours is not None else None
-            self.pub_points.publish(xyz_to_pointcloud2(pts[ok], header, rgb=rgb))
+        if want_disparity:
+            self.pub_disparity.publish(self._disparity_message(disp, geo, header, dmin, ndisp))
+        if want_depth:
+            self.pub_depth.publish(numpy_to_image(depth, '32FC1', header))
+        if want_points:
+            organized = bool(params['organized_cloud'])
+            pts, rgb = cloud_points(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'],
+                                    int(params['point_decimation']), organized, colours)
+            flat = pts.reshape(-1, 3)
+            msg = xyz_to_pointcloud2(flat, header,
+                                     rgb=None if rgb is None else rgb.reshape(-1, 3))
+            if organized:
+                msg.height, msg.width = int(pts.shape[0]), int(pts.shape[1])
+                msg.row_step = msg.point_step * msg.width
+                msg.is_dense = False
+            self.pub_points.publish(msg)
+
+    @staticmethod
+    def _disparity_message(disp: np.ndarray, geo: Dict[str, float], header, dmin: int,
+                           ndisp: int) -> DisparityImage:
+        h, w = disp.shape
+        # Disparity relative to the principal points, as DisparityImage defines it.
+        disp_adj = disp + np.float32(geo['doffs'])
+        dmsg = DisparityImage()
+        dmsg.header = header
+        invalid = np.float32(geo['doffs'] + dmin - 1.0)     # below min_disparity
+        out = np.where(np.isfinite(disp_adj), disp_adj, invalid).astype(np.float32)
+        dmsg.image = numpy_to_image(out, '32FC1', header)
+        dmsg.f = geo['fx']
+        dmsg.t = geo['baseline']
+        dmsg.valid_window = RegionOfInterest(x_offset=dmin, y_offset=0, height=h,
+                                             width=w - dmin)
+        dmsg.min_disparity = float(dmin + geo['doffs'])
+        dmsg.max_disparity = float(dmin + ndisp - 1 + geo['doffs'])
+        dmsg.delta_d = 1.0 / 16.0
+        return dmsg
 
     def _log_stats(self) -> None:
         now = time.monotonic()
@@ -384,7 +558,8 @@ class StereoDepthNode(Node):
             f'processed {n} frames in {period:.1f} s ({n / period:.2f} Hz, {ms:.1f} ms/frame); '
             f"total processed {counters['processed']}, pairs {counters['received_pairs']}, "
             f"dropped stale {counters['dropped_stale']}, unpaired images "
-            f"{counters['unpaired_images']}, failed {counters['failed']}, "
+            f"{counters['unpaired_images']}, failed {counters['failed']}, skipped (no subscriber) "
+            f"{counters['skipped_unsubscribed']}, "
             f'rejected {sum(rejected.values())} {rejected}')
 
     def destroy_node(self) -> None:

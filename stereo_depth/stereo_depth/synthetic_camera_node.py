@@ -1,7 +1,8 @@
 """``synthetic_camera``: a stereo camera driver that renders built-in scenes (or replays a
 still real pair) and publishes it like real hardware, with exact ground truth.
 
-Published topics (all with the same header stamp per frame):
+Published topics (all with the same header stamp per frame: the time the pair was rendered,
+i.e. its "exposure"; with ``trigger`` false the camera free-runs at ``rate``):
 
 * ``left/image_rect``, ``right/image_rect`` (sensor_msgs/Image, mono8 or rgb8, rectified);
 * ``left/camera_info``, ``right/camera_info`` (sensor_msgs/CameraInfo; right ``P[3] = -fx B``);
@@ -152,10 +153,11 @@ class SyntheticCameraNode(Node):
         self._warm = False  # the first frame after a rebuild loads the JIT cache: not "late"
         self.render_errors = 0
         self._pose_pubs: Dict[str, object] = {}
-        self._pub_left = self.create_publisher(Image, 'left/image_rect', 5)
-        self._pub_right = self.create_publisher(Image, 'right/image_rect', 5)
-        self._pub_info_l = self.create_publisher(CameraInfo, 'left/camera_info', 5)
-        self._pub_info_r = self.create_publisher(CameraInfo, 'right/camera_info', 5)
+        # depth 1: a late reader gets the newest frame, never a backlog
+        self._pub_left = self.create_publisher(Image, 'left/image_rect', 1)
+        self._pub_right = self.create_publisher(Image, 'right/image_rect', 1)
+        self._pub_info_l = self.create_publisher(CameraInfo, 'left/camera_info', 1)
+        self._pub_info_r = self.create_publisher(CameraInfo, 'right/camera_info', 1)
         self._pub_depth = self.create_publisher(Image, 'depth_truth', 5)
         self._pub_disp = self.create_publisher(DisparityImage, 'disparity_truth', 5)
         self._pub_occ = self.create_publisher(Image, 'occlusion_truth', 5)
@@ -274,9 +276,6 @@ class SyntheticCameraNode(Node):
                 self.get_logger().error(f'cannot apply the new parameters: {exc}')
                 return
         v = self._values
-        stamp = self.get_clock().now().to_msg()
-        hl = Header(stamp=stamp, frame_id=str(v['left_frame_id']))
-        hr = Header(stamp=stamp, frame_id=str(v['right_frame_id']))
         enc = str(v['encoding'])
         truth = None
         if self._source is not None:
@@ -288,6 +287,12 @@ class SyntheticCameraNode(Node):
             left, right = s.left, s.right
             disparity, depth, occ = s.disparity, s.depth(), None
             f, baseline = s.fx, s.baseline
+        # Stamped when the pair exists (after rendering), as a camera stamps its exposure: the
+        # renderer's cost is the simulation's, not the camera's, and it is not counted as
+        # latency of the graph downstream.
+        stamp = self.get_clock().now().to_msg()
+        hl = Header(stamp=stamp, frame_id=str(v['left_frame_id']))
+        hr = Header(stamp=stamp, frame_id=str(v['right_frame_id']))
         info_l, info_r = self._infos(hl, hr)
         self._pub_left.publish(numpy_to_image(left, enc, hl))
         self._pub_right.publish(numpy_to_image(right, enc, hr))
@@ -297,10 +302,14 @@ class SyntheticCameraNode(Node):
             if truth is not None:
                 for name, T in truth['poses'].items():
                     self._pose_pubs[name].publish(matrix_to_pose_stamped(T, hl))
-            if v['publish_depth'] and depth is not None:
+            # truth images only for a subscriber (they cost more than the pair itself)
+            if (v['publish_depth'] and depth is not None
+                    and self._pub_depth.get_subscription_count()):
                 self._pub_depth.publish(numpy_to_image(np.ascontiguousarray(depth, np.float32),
                                                        '32FC1', hl))
-            if v['publish_disparity'] and disparity is not None:
+            if (v['publish_disparity'] and disparity is not None
+                    and (self._pub_disp.get_subscription_count()
+                         or self._pub_occ.get_subscription_count())):
                 self._pub_disp.publish(self._disparity_msg(disparity, f, baseline, hl))
                 if occ is not None:
                     self._pub_occ.publish(numpy_to_image(occ.astype(np.uint8) * 255, 'mono8',

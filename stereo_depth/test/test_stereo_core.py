@@ -11,7 +11,8 @@ from stereo_depth.matching_cost import (absolute_difference_cost, census_cost, c
 from stereo_depth.optimization import (belief_propagation, census_block_matching,
                                        semi_global_matching, sgm_disparities, stereo_energy,
                                        winner_take_all, winner_take_all_both)
-from stereo_depth.pipeline import (available_methods, compute_disparity, disparity_to_depth,
+from stereo_depth.pipeline import (available_methods, cloud_points, compute_disparity,
+                                   disparity_to_depth,
                                    disparity_to_points)
 from stereo_depth.refinement import (fill_invalid, left_right_check, median_filter,
                                      remove_speckles, right_disparity_from_cost, subpixel_refine)
@@ -350,6 +351,48 @@ def test_depth_and_points_of_a_plane():
     np.testing.assert_allclose(v[1:, 0], np.arange(1, 6), atol=1e-4)
     with pytest.raises(ValueError, match='baseline'):
         disparity_to_depth(disp, fx, 0.0)
+
+
+@pytest.mark.parametrize('method', ['block_matching', 'opencv_sgbm'])
+def test_min_disparity_searches_a_band_and_reports_full_disparities(method):
+    shift = 37
+    left, right = shifted_pair(48, 160, shift, 4)
+    disp = compute_disparity(left, right, method, 16, min_disparity=30)
+    assert disp.shape == left.shape
+    assert np.all(np.isnan(disp[:, :30]))                  # no match possible at d >= 30
+    inner = disp[6:-6, shift + 30 + 16:-6]                 # away from the cropped borders
+    assert (np.abs(inner - shift) <= 0.5).mean() > 0.95
+    # the same band without the offset cannot reach the shift
+    plain = compute_disparity(left, right, method, 16)
+    assert np.nanmax(plain) < 16
+    with pytest.raises(ValueError, match='exceeds the image width'):
+        compute_disparity(left, right, method, 16, min_disparity=150)
+    with pytest.raises(ValueError, match='min_disparity'):
+        compute_disparity(left, right, method, 16, min_disparity=-1)
+
+
+@pytest.mark.parametrize('organized', [False, True])
+def test_cloud_points_decimates_and_organises(organized):
+    fx, cx, cy = 500.0, 4.5, 3.0
+    depth = np.full((7, 10), 2.0, np.float32)
+    depth[2, 4] = np.nan
+    colours = np.arange(7 * 10 * 3, dtype=np.uint8).reshape(7, 10, 3)
+    pts, rgb = cloud_points(depth, fx, fx, cx, cy, 2, organized, colours)
+    full = disparity_to_points(np.where(np.isfinite(depth), fx * 0.1 / depth, np.nan), fx, fx,
+                               cx, cy, 0.1)
+    if organized:
+        assert pts.shape == (4, 5, 3) and rgb.shape == (4, 5, 3)
+        np.testing.assert_allclose(pts[np.isfinite(pts[..., 2])],
+                                   full[::2, ::2][np.isfinite(pts[..., 2])], rtol=1e-6)
+        assert np.isnan(pts[1, 2]).all()                   # pixel (u=4, v=2) is unknown
+        np.testing.assert_array_equal(rgb, colours[::2, ::2])
+    else:
+        assert pts.shape == (19, 3) and np.isfinite(pts).all()
+        kept = np.isfinite(depth[::2, ::2])
+        np.testing.assert_allclose(pts, full[::2, ::2][kept], rtol=1e-6)
+        np.testing.assert_array_equal(rgb, colours[::2, ::2][kept])
+    with pytest.raises(ValueError, match='decimation'):
+        cloud_points(depth, fx, fx, cx, cy, 0)
 
 
 def test_evaluation_metrics_by_hand():

@@ -36,7 +36,8 @@ def _nodes(context):
             remappings.pop('trigger', None)
         actions.append(Node(package=spec.package, executable=spec.executable,
                             name=spec.node_name, parameters=[params],
-                            remappings=list(remappings.items()), output='screen'))
+                            remappings=list(remappings.items()),
+                            additional_env=dict(spec.env), output='screen'))
     return actions
 
 

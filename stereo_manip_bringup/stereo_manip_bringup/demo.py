@@ -2,20 +2,25 @@
 
 Every stage is a live ROS graph of separate processes (what ``ros2 launch
 stereo_manip_bringup pipeline.launch.py`` starts on a ROS install), fed by the synthetic stereo
-camera, whose exact ground truth scores each stage:
+camera, whose exact ground truth scores each stage. Every stage scores each localised object's
+published poses (ADD-S median / p95 / max, frames without a pose and whether the localiser's
+TrackStatus flagged them, frames beyond :data:`WRONG_POSE_M`), plus:
 
 1. ``peg_in_hole``: synthetic_camera -> stereo_depth_node -> object_localizer_node (peg,
-   hole_block) -> contact_correction_node. Scores: the peg's localisation error (ADD-S) before
-   and after contact correction, penetration before and after, contact ranks seen.
-2. ``revolute_pair``: synthetic_camera -> stereo_depth_node -> object_localizer_node (link_base,
-   link_arm) -> joint_estimator_node. Scores: joint type, axis direction error and axis-line
-   distance in the camera frame (invariant to the boxes' symmetries).
-3. ``primitives``: synthetic_camera -> stereo_depth_node -> object_localizer_node (cube, torus)
-   -> one ip_modeler_node per object on its segmented cloud. Scores: selected degree, RMS
-   distance of the object's points to the zero set.
+   hole_block static) -> contact_correction_node. The peg's ADD-S relative to the localised
+   block before and after contact correction per phase of the insertion (approach, sliding,
+   inserting, inserted: from the scene's truth), penetration, contact ranks.
+2. ``revolute_pair``: ... -> object_localizer_node (link_base, link_arm) ->
+   joint_estimator_node. Joint type, axis direction error and axis-line distance in the camera
+   frame (invariant to the boxes' symmetries).
+3. ``primitives``: ... -> object_localizer_node (cube, torus) -> one ip_modeler_node per object
+   on its segmented cloud. Selected degree, RMS distance of the points to the zero set.
+4. ``peg_in_hole_live``: the peg_in_hole graph with the camera free-running at 10 Hz: frames
+   the graph cannot keep up with are lost (and counted); rate and latency of every topic.
 
-Writes ``<out>/report.json``, ``<out>/report.md``, one figure per stage and every node's log;
-exits non-zero if a stage produced no result. Usage::
+Stages 1-3 trigger the camera frame by frame (every frame crosses the whole graph). Writes
+``<out>/report.json``, ``<out>/report.md``, one figure per stage and every node's log; exits
+non-zero if a stage produced no result or published a wrong pose that was not flagged. Usage::
 
     scripts/ros2run stereo_manip_bringup demo --out demo_output [--frames 0.5]
 """
@@ -36,6 +41,12 @@ import numpy as np
 __all__ = ['NodeSpec', 'Stage', 'run_stage', 'STAGES', 'main']
 
 
+# Environment of every node of the graphs. OpenBLAS starts one spinning thread per core in
+# every process: on a shared 2-core machine an IP fit took 3-9 s with them and 0.7 s with one
+# thread (load ~9). GNU OpenMP threads (Open3D) yield the core when idle instead of spinning.
+GRAPH_ENV: Dict[str, str] = {'OPENBLAS_NUM_THREADS': '1', 'OMP_WAIT_POLICY': 'PASSIVE'}
+
+
 @dataclass
 class NodeSpec:
     """One executable of the graph: package, executable, node name, parameters, remappings."""
@@ -45,6 +56,7 @@ class NodeSpec:
     node_name: str
     parameters: Dict[str, Any] = field(default_factory=dict)
     remappings: Dict[str, str] = field(default_factory=dict)
+    env: Dict[str, str] = field(default_factory=lambda: dict(GRAPH_ENV))
 
     def ros_args(self) -> List[str]:
         """``--ros-args`` list: node name, ``-p name:=value`` and ``-r from:=to``."""
@@ -76,6 +88,9 @@ class Stage:
     frames: int = 30                 # frames the camera is triggered for
     stamp_topic: str = ''            # a camera truth topic: gives each frame's stamp
     done_topics: Tuple[str, ...] = ()  # the graph's last outputs for a frame
+    objects: Tuple[str, ...] = ()    # localised objects: poses scored against truth
+    live_seconds: float = 0.0        # > 0: the camera free-runs at live_rate for this long
+    live_rate: float = 10.0          # [Hz] camera rate of a free-running stage
 
 
 def _camera(scene: str, frame_step: int = 1) -> NodeSpec:
@@ -87,13 +102,32 @@ def _camera(scene: str, frame_step: int = 1) -> NodeSpec:
                     {'trigger': '/camera_trigger'})
 
 
-def _stereo() -> NodeSpec:
-    # objects 0.4-0.6 m from the 600 px / 0.10 m camera: disparities up to 155 px
+# Disparity band of each scene's objects and table (600 px / 0.10 m camera), measured on the
+# rendered truth over every 18th-25th frame of a loop: peg_in_hole 56-153 px, revolute_pair
+# 58-162 px, primitives 59-120 px; each band below covers it with a margin of >= 5 px.
+# The IP modeller in the live graph: fits on at most 2000 points of the object's cloud with a
+# coarser zero-set marker (the fit's cost grows with the points; the marker's marching cubes
+# with the cube of its resolution).
+IP_GRAPH_PARAMETERS: Dict[str, Any] = {'max_points': 2000, 'mesh_resolution': 32}
+
+SCENE_DISPARITY_BANDS: Dict[str, Tuple[int, int]] = {
+    'peg_in_hole': (48, 112),      # (min_disparity, max_disparity = count): 48..159 px
+    'revolute_pair': (48, 120),    # 48..167 px
+    'primitives': (48, 80),        # 48..127 px
+}
+
+
+def _stereo(scene: str) -> NodeSpec:
+    """The stereo node searching only the scene's disparity band, publishing a cloud of every
+    2nd pixel in both directions (a quarter of the points: the localiser voxelises at 3 mm,
+    coarser than the 2-pixel spacing of ~1.5 mm at 0.45 m)."""
+    dmin, count = SCENE_DISPARITY_BANDS[scene]
     return NodeSpec('stereo_depth', 'stereo_depth_node', 'stereo_depth_node',
-                    {'method': 'block_matching', 'max_disparity': 160, 'input_qos': 'reliable'})
+                    {'method': 'block_matching', 'min_disparity': dmin, 'max_disparity': count,
+                     'point_decimation': 2, 'input_qos': 'reliable'})
 
 
-def _localizer(scene: str, models: Sequence[str]) -> NodeSpec:
+def _localizer(scene: str, models: Sequence[str], static: Sequence[str] = ()) -> NodeSpec:
     """The localiser, started from the objects' poses at the scene's first frame (the track is
     initialised once, as a robot would from its task set-up; afterwards it is pure tracking)."""
     from stereo_depth.synthetic import make_scene
@@ -104,11 +138,21 @@ def _localizer(scene: str, models: Sequence[str]) -> NodeSpec:
         T = poses[name]
         initial += [float(v) for v in T[:3, 3]] + [float(v) for v in quaternion_from_matrix(
             T[:3, :3])]
-    return NodeSpec('object_localizer', 'object_localizer_node', 'object_localizer',
-                    {'models': list(models), 'initial_poses': initial})
+    params: Dict[str, Any] = {'models': list(models), 'initial_poses': initial}
+    if static:
+        params['static_objects'] = list(static)     # localised once, then re-verified
+    return NodeSpec('object_localizer', 'object_localizer_node', 'object_localizer', params)
 
 
 # --- scoring --------------------------------------------------------------------------------
+
+WRONG_POSE_M = 0.005      # a published pose farther than this (ADD-S) from the truth is wrong
+
+# TrackStatus states (stereo_manip_msgs/msg/TrackStatus): a pose published under one of these
+# claims to be good; any other state flags the frame.
+_TRACK_STATE_NAMES = {0: 'acquiring', 1: 'tracking', 2: 'lost', 3: 'static'}
+_GOOD_STATES = (1, 3)
+
 
 def _by_stamp(records: List[Tuple[int, Any]]) -> Dict[int, Any]:
     return {stamp: msg for stamp, msg in records}
@@ -119,17 +163,110 @@ def _pose(msg: Any) -> np.ndarray:
     return pose_to_matrix(msg.pose)
 
 
+_MODEL_POINTS: Dict[str, np.ndarray] = {}
+
+
 def _model_points(name: str) -> np.ndarray:
-    from object_localizer.localization import prepare_model
-    from stereo_manip_tools.mesh_io import find_model, load_obj
-    return prepare_model(load_obj(find_model(name))).points
+    if name not in _MODEL_POINTS:
+        from object_localizer.localization import prepare_model
+        from stereo_manip_tools.mesh_io import find_model, load_obj
+        _MODEL_POINTS[name] = prepare_model(load_obj(find_model(name))).points
+    return _MODEL_POINTS[name]
 
 
-def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: Stage) -> Dict[str, Any]:
-    """ADD-S of the localised and corrected peg against truth, in the camera frame and relative
-    to the hole block (what contact correction acts on), and contact figures per frame."""
+def spread(values: Sequence[float], scale: float = 1.0) -> Dict[str, float]:
+    """median, p95, max and count of ``values`` times ``scale`` (NaN when empty)."""
+    a = np.asarray(list(values), float) * scale
+    if a.size == 0:
+        return {'median': float('nan'), 'p95': float('nan'), 'max': float('nan'), 'n': 0}
+    return {'median': float(np.median(a)), 'p95': float(np.percentile(a, 95)),
+            'max': float(a.max()), 'n': int(a.size)}
+
+
+def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
+                       window: Optional[Tuple[int, int]] = None,
+                       pose_topic: Optional[str] = None) -> Dict[str, Any]:
+    """Every camera frame of one object: its published pose's ADD-S against truth [m], or why
+    there is none; a published pose beyond :data:`WRONG_POSE_M` whose TrackStatus (if any) does
+    not flag it is *wrong and unflagged*.
+
+    :param window: (first, last) stamps [ns] of the frames scored (None: all).
+    :returns: ``frames`` rows (stamp, add_s_m or None, state, flagged) and the counts.
+    """
+    from object_localizer.evaluation import add_s
+    truth = _by_stamp(data[f'/objects/{name}/pose_truth'])
+    poses = _by_stamp(data[pose_topic or f'/objects/{name}/pose'])
+    status = _by_stamp(data.get(f'/objects/{name}/status', []))
+    have_status = f'/objects/{name}/status' in data
+    pts = _model_points(name)
+    rows = []
+    for stamp in sorted(truth):
+        if window is not None and not window[0] <= stamp <= window[1]:
+            continue
+        st = status.get(stamp)
+        state = _TRACK_STATE_NAMES.get(int(st.state), '?') if st is not None else None
+        flagged = st is not None and int(st.state) not in _GOOD_STATES
+        err = add_s(_pose(poses[stamp]), _pose(truth[stamp]), pts) if stamp in poses else None
+        rows.append({'stamp_ns': stamp, 'add_s_m': err, 'state': state, 'flagged': flagged,
+                     'reason': st.reason if st is not None else ''})
+    errs = [r['add_s_m'] for r in rows if r['add_s_m'] is not None]
+    wrong = [r for r in rows if r['add_s_m'] is not None and r['add_s_m'] > WRONG_POSE_M]
+    no_pose = [r for r in rows if r['add_s_m'] is None]
+    return {
+        'frames': rows, 'camera_frames': len(rows), 'with_pose': len(errs),
+        'no_pose': len(no_pose),
+        'no_pose_flagged': sum(r['flagged'] for r in no_pose),
+        'no_pose_no_status': sum(r['state'] is None for r in no_pose),
+        'status_topic': have_status,
+        'add_s_mm': spread(errs, 1000.0),
+        'beyond_error': len(wrong), 'error_threshold_mm': WRONG_POSE_M * 1000,
+        'wrong_unflagged': sum(not r['flagged'] for r in wrong),
+    }
+
+
+def _peg_phases() -> Tuple[np.ndarray, List[str]]:
+    """Relative peg poses (block frame) of every scene frame and its phase name, from the
+    scene's truth: approach (no contact yet), sliding (on the block's top face, over the hole),
+    inserting (going down the hole), inserted (at the bottom)."""
+    from stereo_depth.synthetic import make_scene
+    scene = make_scene('peg_in_hole')
+    rel, names = [], []
+    for k in range(scene.n_frames):
+        ex = scene.extras(k)
+        T = ex['T_block_peg']
+        if ex['contact_phase'] == 'none':
+            phase = 'approach'
+        elif ex['contact_phase'] != 'inserted':
+            phase = 'sliding'
+        else:
+            phase = 'inserted' if T[2, 3] <= -0.06 + 1e-6 else 'inserting'
+        rel.append(T)
+        names.append(phase)
+    return np.array(rel), names
+
+
+PEG_PHASES = ('approach', 'sliding', 'inserting', 'inserted')
+
+
+def _phase_of(rel_true: np.ndarray, table: Tuple[np.ndarray, List[str]]) -> str:
+    """Phase of the scene frame whose relative pose is nearest ``rel_true``."""
+    rel, names = table
+    d = (np.linalg.norm(rel[:, :3, 3] - rel_true[:3, 3], axis=1)
+         + 0.05 * np.linalg.norm(rel[:, :3, :3] - rel_true[:3, :3], axis=(1, 2)))
+    return names[int(np.argmin(d))]
+
+
+def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
+                      window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
+    """Every object's published poses against truth (lost / flagged / wrong frames counted),
+    and the peg's ADD-S before and after contact correction, in the camera frame and relative
+    to the localised hole block, per contact phase."""
     from object_localizer.evaluation import add_s
     from stereo_manip_tools.transforms import invert_transform
+    out: Dict[str, Any] = {'poses': {n: score_object_poses(data, n, window)
+                                     for n in stage.objects}}
+    out['poses']['peg (corrected)'] = score_object_poses(
+        data, 'peg', window, pose_topic='/objects/peg/pose_corrected')
     truth = _by_stamp(data['/objects/peg/pose_truth'])
     observed = _by_stamp(data['/objects/peg/pose'])
     corrected = _by_stamp(data['/objects/peg/pose_corrected'])
@@ -137,47 +274,52 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: Stage) -> D
     block = _by_stamp(data['/objects/hole_block/pose'])
     states = _by_stamp(data['/contact_state'])
     pts = _model_points('peg')
+    table = _peg_phases()
     rows = []
-    for stamp in sorted(set(truth) & set(observed) & set(corrected) & set(states) & set(block)
-                        & set(block_truth)):
-        T = _pose(truth[stamp])
-        rel_true = invert_transform(_pose(block_truth[stamp])) @ T
-        to_block = invert_transform(_pose(block[stamp]))
-        st = states[stamp]
-        rows.append({
-            'stamp_ns': stamp,
-            'add_s_observed_m': add_s(_pose(observed[stamp]), T, pts),
-            'add_s_corrected_m': add_s(_pose(corrected[stamp]), T, pts),
-            'relative_add_s_observed_m': add_s(to_block @ _pose(observed[stamp]), rel_true, pts),
-            'relative_add_s_corrected_m': add_s(to_block @ _pose(corrected[stamp]), rel_true,
-                                                pts),
-            'corrected': bool(st.corrected), 'rotation_rank': int(st.rotation_rank),
-            'pairs': len(st.pairs), 'penetration_observed_m': float(st.penetration_depth),
-            'contact_residual_after_m': float(st.max_contact_residual),
-            'status': st.status,
-        })
-    out: Dict[str, Any] = {'frames_scored': len(rows), 'frames': rows,
-                           'camera_frames': len(truth), 'localised_frames': len(observed)}
-    if rows:
-        obs = np.array([r['add_s_observed_m'] for r in rows])
-        cor = np.array([r['add_s_corrected_m'] for r in rows])
-        in_contact = np.array([r['corrected'] for r in rows])
-        rel_obs = np.array([r['relative_add_s_observed_m'] for r in rows])[in_contact]
-        rel_cor = np.array([r['relative_add_s_corrected_m'] for r in rows])[in_contact]
-        out.update(
-            median_add_s_observed_mm=float(np.median(obs) * 1000),
-            median_add_s_corrected_mm=float(np.median(cor) * 1000),
-            median_relative_add_s_observed_mm=float(np.median(rel_obs) * 1000)
-            if len(rel_obs) else float('nan'),
-            median_relative_add_s_corrected_mm=float(np.median(rel_cor) * 1000)
-            if len(rel_cor) else float('nan'),
-            frames_corrected=int(in_contact.sum()),
-            max_penetration_observed_mm=float(max(r['penetration_observed_m']
-                                                  for r in rows) * 1000),
-            max_contact_residual_after_mm=float(max(
-                (r['contact_residual_after_m'] for r in rows if r['corrected']),
-                default=0.0) * 1000),
-            rotation_ranks_seen=sorted({r['rotation_rank'] for r in rows if r['corrected']}))
+    for stamp in sorted(set(truth) & set(block_truth)):
+        if window is not None and not window[0] <= stamp <= window[1]:
+            continue
+        rel_true = invert_transform(_pose(block_truth[stamp])) @ _pose(truth[stamp])
+        row: Dict[str, Any] = {'stamp_ns': stamp, 'phase': _phase_of(rel_true, table)}
+        if stamp in observed and stamp in block:
+            to_block = invert_transform(_pose(block[stamp]))
+            row['relative_add_s_observed_m'] = add_s(to_block @ _pose(observed[stamp]),
+                                                     rel_true, pts)
+            if stamp in corrected:
+                row['relative_add_s_corrected_m'] = add_s(to_block @ _pose(corrected[stamp]),
+                                                          rel_true, pts)
+        st = states.get(stamp)
+        if st is not None:
+            row.update(corrected=bool(st.corrected), rotation_rank=int(st.rotation_rank),
+                       pairs=len(st.pairs), penetration_observed_m=float(st.penetration_depth),
+                       contact_residual_after_m=float(st.max_contact_residual),
+                       status=st.status)
+        rows.append(row)
+    out['frames'] = rows
+    out['frames_scored'] = sum('relative_add_s_corrected_m' in r for r in rows)
+    out['camera_frames'] = len(rows)
+    phases = {}
+    for phase in PEG_PHASES:
+        sel = [r for r in rows if r['phase'] == phase]
+        phases[phase] = {
+            'frames': len(sel),
+            'frames_scored': sum('relative_add_s_corrected_m' in r for r in sel),
+            'contact_corrected': sum(bool(r.get('corrected')) for r in sel),
+            'relative_add_s_observed_mm': spread(
+                [r['relative_add_s_observed_m'] for r in sel
+                 if 'relative_add_s_corrected_m' in r], 1000.0),
+            'relative_add_s_corrected_mm': spread(
+                [r['relative_add_s_corrected_m'] for r in sel
+                 if 'relative_add_s_corrected_m' in r], 1000.0)}
+    out['phases'] = phases
+    corr = [r for r in rows if r.get('corrected')]
+    out['frames_corrected'] = len(corr)
+    out['max_penetration_observed_mm'] = 1000 * max(
+        (r['penetration_observed_m'] for r in rows if 'penetration_observed_m' in r),
+        default=float('nan'))
+    out['max_contact_residual_after_mm'] = 1000 * max(
+        (r['contact_residual_after_m'] for r in corr), default=0.0)
+    out['rotation_ranks_seen'] = sorted({r['rotation_rank'] for r in corr})
     return out
 
 
@@ -192,8 +334,10 @@ def _line_errors(axis_est: np.ndarray, point_est: np.ndarray, axis_true: np.ndar
     return angle, float(np.linalg.norm(d - (d @ a) * a))
 
 
-def score_revolute_pair(data: Dict[str, List[Tuple[int, Any]]], stage: Stage) -> Dict[str, Any]:
-    """Joint type and axis line of the newest estimate vs the scene's true joint."""
+def score_revolute_pair(data: Dict[str, List[Tuple[int, Any]]], stage: Stage,
+                        window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
+    """Both links' poses against truth; joint type and axis line of the newest estimate vs the
+    scene's true joint."""
     from stereo_depth.synthetic import make_scene
     from stereo_manip_tools.conversions import point_to_numpy, stamp_to_ns, vector3_to_numpy
     estimates = data['/joint_estimate']
@@ -220,6 +364,7 @@ def score_revolute_pair(data: Dict[str, List[Tuple[int, Any]]], stage: Stage) ->
                         'axis_error_deg': angle, 'axis_line_distance_m': dist,
                         'status': est.status})
     out['history'] = history
+    out['poses'] = {n: score_object_poses(data, n, window) for n in stage.objects}
     if history:
         last = history[-1]
         out.update(final_type=last['type'], final_axis_error_deg=last['axis_error_deg'],
@@ -228,8 +373,10 @@ def score_revolute_pair(data: Dict[str, List[Tuple[int, Any]]], stage: Stage) ->
     return out
 
 
-def score_primitives(data: Dict[str, List[Tuple[int, Any]]], stage: Stage) -> Dict[str, Any]:
-    """Degree and RMS distance of each object's newest implicit polynomial."""
+def score_primitives(data: Dict[str, List[Tuple[int, Any]]], stage: Stage,
+                     window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
+    """The objects' poses against truth; degree and RMS distance of each object's newest
+    implicit polynomial."""
     out: Dict[str, Any] = {}
     for name in ('cube', 'torus'):
         fits = data[f'/objects/{name}/implicit_polynomial']
@@ -241,58 +388,73 @@ def score_primitives(data: Dict[str, List[Tuple[int, Any]]], stage: Stage) -> Di
                      'rms_distance_mm': float(last.rms_distance) * 1000,
                      'max_distance_mm': float(last.max_distance) * 1000,
                      'points': int(last.point_count), 'status': last.status}
-    return {'objects': out}
+    return {'objects': out,
+            'poses': {n: score_object_poses(data, n, window) for n in stage.objects}}
 
 
-STAGES: Dict[str, Callable[[], Stage]] = {
-    'peg_in_hole': lambda: Stage(
-        'peg_in_hole',
-        [_camera('peg_in_hole', 3), _stereo(),
-         _localizer('peg_in_hole', ['peg', 'hole_block']),
+def _object_topics(objects: Sequence[str]) -> Dict[str, str]:
+    """Truth, published pose and track status of every localised object."""
+    out = {}
+    for name in objects:
+        out[f'/objects/{name}/pose_truth'] = 'geometry_msgs/msg/PoseStamped'
+        out[f'/objects/{name}/pose'] = 'geometry_msgs/msg/PoseStamped'
+        out[f'/objects/{name}/status'] = 'stereo_manip_msgs/msg/TrackStatus'
+    return out
+
+
+def _peg_in_hole_stage(name: str = 'peg_in_hole', live_seconds: float = 0.0) -> Stage:
+    objects = ('peg', 'hole_block')
+    return Stage(
+        name,
+        [_camera('peg_in_hole', 3), _stereo('peg_in_hole'),
+         _localizer('peg_in_hole', list(objects), static=('hole_block',)),
          NodeSpec('contact_correction', 'contact_correction_node', 'contact_correction',
                   {'moving_object': 'peg', 'fixed_object': 'hole_block'},
                   {'moving_pose': '/objects/peg/pose', 'fixed_pose': '/objects/hole_block/pose',
                    'corrected_pose': '/objects/peg/pose_corrected'})],
-        {'/objects/peg/pose_truth': 'geometry_msgs/msg/PoseStamped',
-         '/objects/peg/pose': 'geometry_msgs/msg/PoseStamped',
-         '/objects/hole_block/pose_truth': 'geometry_msgs/msg/PoseStamped',
-         '/objects/hole_block/pose': 'geometry_msgs/msg/PoseStamped',
+        {**_object_topics(objects),
          '/objects/peg/pose_corrected': 'geometry_msgs/msg/PoseStamped',
          '/contact_state': 'stereo_manip_msgs/msg/ContactState'},
-        score_peg_in_hole, 'contact correction of a localised peg (Section 3)',
-        frames=75, stamp_topic='/objects/peg/pose_truth', done_topics=('/contact_state',)),
+        score_peg_in_hole,
+        'contact correction of a localised peg (Section 3)' + (
+            f', camera free-running at 10 Hz for {live_seconds:.0f} s' if live_seconds else ''),
+        frames=75, stamp_topic='/objects/peg/pose_truth', done_topics=('/contact_state',),
+        objects=objects, live_seconds=live_seconds)
+
+
+STAGES: Dict[str, Callable[[], Stage]] = {
+    'peg_in_hole': _peg_in_hole_stage,
     'revolute_pair': lambda: Stage(
         'revolute_pair',
-        [_camera('revolute_pair', 3), _stereo(),
+        [_camera('revolute_pair', 3), _stereo('revolute_pair'),
          _localizer('revolute_pair', ['link_base', 'link_arm']),
          NodeSpec('joint_estimator', 'joint_estimator_node', 'joint_estimator',
                   {'min_poses': 10, 'estimate_every': 2},
                   {'link_a_pose': '/objects/link_arm/pose',
                    'link_b_pose': '/objects/link_base/pose'})],
-        {'/objects/link_base/pose_truth': 'geometry_msgs/msg/PoseStamped',
-         '/objects/link_base/pose': 'geometry_msgs/msg/PoseStamped',
-         '/objects/link_arm/pose': 'geometry_msgs/msg/PoseStamped',
+        {**_object_topics(('link_base', 'link_arm')),
          '/joint_estimate': 'stereo_manip_msgs/msg/JointEstimate'},
         score_revolute_pair, 'joint estimation from two localised links (Section 4)',
         frames=60, stamp_topic='/objects/link_base/pose_truth',
-        done_topics=('/objects/link_arm/pose',)),
+        done_topics=('/objects/link_arm/pose',), objects=('link_base', 'link_arm')),
     'primitives': lambda: Stage(
         'primitives',
-        [_camera('primitives', 3), _stereo(),
+        [_camera('primitives', 3), _stereo('primitives'),
          _localizer('primitives', ['cube', 'torus'])] + [
             NodeSpec('ip_modeler', 'ip_modeler_node', f'ip_modeler_{n}',
-                     {'input_qos': 'reliable'},
+                     {'input_qos': 'reliable', **IP_GRAPH_PARAMETERS},
                      {'cloud': f'/objects/{n}/cloud',
                       'implicit_polynomial': f'/objects/{n}/implicit_polynomial',
                       'zero_set_marker': f'/objects/{n}/zero_set_marker'})
             for n in ('cube', 'torus')],
-        {'/objects/cube/pose_truth': 'geometry_msgs/msg/PoseStamped',
+        {**_object_topics(('cube', 'torus')),
          '/objects/cube/implicit_polynomial': 'stereo_manip_msgs/msg/ImplicitPolynomial',
          '/objects/torus/implicit_polynomial': 'stereo_manip_msgs/msg/ImplicitPolynomial'},
         score_primitives, 'implicit polynomials of segmented stereo clouds (Section 5)',
         frames=4, stamp_topic='/objects/cube/pose_truth',
         done_topics=('/objects/cube/implicit_polynomial',
-                     '/objects/torus/implicit_polynomial')),
+                     '/objects/torus/implicit_polynomial'), objects=('cube', 'torus')),
+    'peg_in_hole_live': lambda: _peg_in_hole_stage('peg_in_hole_live', live_seconds=15.0),
 }
 
 
@@ -301,12 +463,18 @@ STAGES: Dict[str, Callable[[], Stage]] = {
 def run_stage(stage: Stage, frame_timeout: float = 20.0,
               log: Callable[[str], None] = print
               ) -> Tuple[Dict[str, List[Tuple[int, Any]]], Dict[str, Any]]:
-    """Start the stage's graph, trigger ``stage.frames`` camera frames one after another (the
-    next when the graph's last output for the previous one arrived, or after
-    ``frame_timeout`` s), record the stage's topics, stop the graph.
+    """Start the stage's graph, drive the camera, record the stage's topics, stop the graph.
 
-    :returns: ``({topic: [(stamp_ns, msg), ...]}, {'tails': {node: output}, 'frames_timed_out':
-        n, 'seconds_per_frame': s})``.
+    Triggered stages (``live_seconds == 0``): ``stage.frames`` camera frames one after another
+    (the next when the graph's last output for the previous one arrived, or after
+    ``frame_timeout`` s). Free-running stages: the camera runs at ``stage.live_rate`` Hz; the
+    scored window starts 2 s after the graph's first final output and lasts
+    ``stage.live_seconds``.
+
+    :returns: ``({topic: [(stamp_ns, msg), ...]}, info)`` with ``info``: ``tails`` / ``logs``
+        per node, ``frames_timed_out``, ``seconds_per_frame``, ``receipts`` {topic: [(stamp_ns,
+        receipt_ns)]}, ``window`` (first, last stamp scored) for a free-running stage and
+        ``unavailable_topics`` (message types not installed).
     :raises RuntimeError: a node did not come up or died (its output is in the message).
     """
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -317,48 +485,91 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
     from stereo_manip_tools.processes import ExecutableProcess, make_node, shutdown_node, \
         spin_until
 
+    live = stage.live_seconds > 0
     observer = make_node(f'demo_{stage.name}')
-    data: Dict[str, List[Tuple[int, Any]]] = {t: [] for t in stage.topics}
+    data: Dict[str, List[Tuple[int, Any]]] = {}
+    receipts: Dict[str, List[Tuple[int, int]]] = {}
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    info: Dict[str, Any] = {'tails': {}, 'logs': {}, 'frames_timed_out': 0,
+                            'receipts': receipts, 'unavailable_topics': []}
     for topic, type_name in stage.topics.items():
+        try:
+            cls = get_message_class(type_name)
+        except Exception:  # noqa: BLE001 - a type this install lacks: scored as absent
+            info['unavailable_topics'].append(topic)
+            continue
+        data[topic], receipts[topic] = [], []
+
         def record(msg: Any, topic: str = topic) -> None:
-            data[topic].append((stamp_to_ns(msg.header.stamp), msg))
-        observer.create_subscription(get_message_class(type_name), topic, record, qos)
+            stamp = stamp_to_ns(msg.header.stamp)
+            data[topic].append((stamp, msg))
+            receipts[topic].append((stamp, time.time_ns()))
+        observer.create_subscription(cls, topic, record, qos)
     trigger = observer.create_publisher(Empty, '/camera_trigger', 10)
     procs: List[Tuple[NodeSpec, ExecutableProcess]] = []
-    info: Dict[str, Any] = {'tails': {}, 'logs': {}, 'frames_timed_out': 0}
     t_start = time.monotonic()
     try:
-        for spec in stage.nodes:
-            proc = ExecutableProcess(spec.package, spec.executable, (), spec.ros_args())
+        # a free-running camera starts last, once its readers are up
+        order = sorted(stage.nodes, key=lambda n: live and n.executable == 'synthetic_camera')
+        for spec in order:
+            if live and spec.executable == 'synthetic_camera':
+                spec = NodeSpec(spec.package, spec.executable, spec.node_name,
+                                {**spec.parameters, 'trigger': False,
+                                 'rate': float(stage.live_rate)}, {}, spec.env)
+            proc = ExecutableProcess(spec.package, spec.executable, (), spec.ros_args(),
+                                     env=spec.env)
             procs.append((spec, proc))
-        for spec, proc in procs:
             if not proc.wait_for_node(observer, spec.node_name, 120.0):
                 raise RuntimeError(f'{spec.package}/{spec.executable} did not start:\n'
                                    + proc.output()[-3000:])
+            if spec.executable == 'stereo_depth_node':
+                proc.wait_for_output('warm-up', 60.0)       # kernels loaded
             log(f'  started {spec.package}/{spec.executable} as {spec.node_name}')
-        spin_until(observer, lambda: trigger.get_subscription_count() > 0, 30.0)
-        t_start = time.monotonic()
-        for k in range(stage.frames):
-            n_stamps = len(data[stage.stamp_topic])
-            trigger.publish(Empty())
-            if not spin_until(observer, lambda: len(data[stage.stamp_topic]) > n_stamps, 30.0):
-                raise RuntimeError('the camera did not answer a trigger within 30 s')
-            stamp = data[stage.stamp_topic][-1][0]
-            done = spin_until(observer, lambda: all(
-                any(s == stamp for s, _ in data[t][-5:]) for t in stage.done_topics),
-                frame_timeout)
-            info['frames_timed_out'] += not done
-            if (k + 1) % 10 == 0 or k + 1 == stage.frames:
-                log(f'  [{stage.name}] frame {k + 1}/{stage.frames}: '
-                    + ', '.join(f'{t}: {len(v)}' for t, v in data.items()))
+
+        def check_alive() -> None:
             dead = [s.node_name for s, p in procs if not p.running()]
             if dead:
                 raise RuntimeError(f'node(s) exited early: {", ".join(dead)}\n' + '\n'.join(
                     p.output()[-2000:] for s, p in procs if s.node_name in dead))
+
+        if live:
+            final = stage.done_topics[0]
+            if not spin_until(observer, lambda: len(data[final]) > 0, 90.0):
+                raise RuntimeError(f'no {final} within 90 s of the camera starting')
+            spin_until(observer, lambda: False, 2.0)
+            t0 = time.time_ns()
+            t_start = time.monotonic()
+            spin_until(observer, lambda: False, stage.live_seconds)
+            t1 = time.time_ns()
+            check_alive()
+            info['window'] = (t0, t1)
+            info['frames_triggered'] = sum(t0 <= s <= t1 for s, _ in data[stage.stamp_topic])
+            log(f'  [{stage.name}] {stage.live_seconds:.0f} s free-running: '
+                + ', '.join(f'{t}: {sum(t0 <= s <= t1 for s, _ in v)}'
+                            for t, v in data.items()))
+        else:
+            spin_until(observer, lambda: trigger.get_subscription_count() > 0, 30.0)
+            t_start = time.monotonic()
+            for k in range(stage.frames):
+                n_stamps = len(data[stage.stamp_topic])
+                trigger.publish(Empty())
+                if not spin_until(observer, lambda: len(data[stage.stamp_topic]) > n_stamps,
+                                  30.0):
+                    raise RuntimeError('the camera did not answer a trigger within 30 s')
+                stamp = data[stage.stamp_topic][-1][0]
+                done = spin_until(observer, lambda: all(
+                    any(s == stamp for s, _ in data[t][-5:]) for t in stage.done_topics),
+                    frame_timeout)
+                info['frames_timed_out'] += not done
+                if (k + 1) % 10 == 0 or k + 1 == stage.frames:
+                    log(f'  [{stage.name}] frame {k + 1}/{stage.frames}: '
+                        + ', '.join(f'{t}: {len(v)}' for t, v in data.items()))
+                check_alive()
+            info['frames_triggered'] = stage.frames
         spin_until(observer, lambda: False, 1.0)  # late messages of the last frame
     finally:
-        info['seconds_per_frame'] = (time.monotonic() - t_start) / max(stage.frames, 1)
+        frames = max(info.get('frames_triggered', stage.frames), 1)
+        info['seconds_per_frame'] = (time.monotonic() - t_start) / frames
         for spec, proc in reversed(procs):
             proc.stop()
             info['logs'][spec.node_name] = proc.output()
@@ -367,84 +578,189 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
     return data, info
 
 
+def live_figures(receipts: Dict[str, List[Tuple[int, int]]], window: Tuple[int, int],
+                 camera_topic: str, topics: Sequence[str]) -> Dict[str, Any]:
+    """Rate [Hz], latency (receipt - stamp) [ms] median/p95/max and frames missing of each
+    topic, over the camera frames stamped inside ``window``."""
+    camera = sorted({s for s, _ in receipts.get(camera_topic, [])
+                     if window[0] <= s <= window[1]})
+    cam = set(camera)
+    seconds = (window[1] - window[0]) / 1e9
+    out: Dict[str, Any] = {'camera_frames': len(camera),
+                           'camera_rate_hz': len(camera) / seconds if seconds > 0 else 0.0}
+    for topic in topics:
+        first: Dict[int, int] = {}
+        for stamp, recv in receipts.get(topic, []):
+            if stamp in cam and stamp not in first:
+                first[stamp] = recv
+        out[topic] = {'rate_hz': len(first) / seconds if seconds > 0 else 0.0,
+                      'latency_ms': spread([(r - s) / 1e6 for s, r in first.items()]),
+                      'frames_missing': len(camera) - len(first)}
+    return out
+
+
 def _figure(stage: str, result: Dict[str, Any], path: Path) -> Optional[Path]:
+    """Per object: the ADD-S error of every frame against time on a log axis, the error
+    threshold, and every frame without a pose as a red mark at the bottom (so a loss is
+    visible however short); peg stages add the corrected peg and shade the contact phases."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    if stage == 'peg_in_hole' and result.get('frames'):
-        rows = result['frames']
-        t = (np.array([r['stamp_ns'] for r in rows]) - rows[0]['stamp_ns']) / 1e9
-        fig, ax = plt.subplots(figsize=(7, 3.5))
-        ax.plot(t, [r['add_s_observed_m'] * 1000 for r in rows], 'o-', label='localised')
-        ax.plot(t, [r['add_s_corrected_m'] * 1000 for r in rows], 's-',
-                label='after contact correction')
-        ax.set_xlabel('time [s]')
-        ax.set_ylabel('peg ADD-S error [mm]')
-        ax.legend()
-        ax.set_title('peg_in_hole: pose error vs ground truth')
-    elif stage == 'revolute_pair' and result.get('history'):
-        h = result['history']
-        t = (np.array([r['stamp_ns'] for r in h]) - h[0]['stamp_ns']) / 1e9
-        fig, ax = plt.subplots(figsize=(7, 3.5))
-        ax.plot(t, [r['axis_error_deg'] for r in h], 'o-', label='axis direction [deg]')
-        ax.plot(t, [r['axis_line_distance_m'] * 1000 for r in h], 's-',
-                label='axis line distance [mm]')
-        ax.set_xlabel('time [s]')
-        ax.legend()
-        ax.set_title('revolute_pair: joint axis error vs ground truth')
-    else:
+    poses = result.get('poses') or {}
+    if not poses or not any(p['camera_frames'] for p in poses.values()):
         return None
+    t0 = min(r['stamp_ns'] for p in poses.values() for r in p['frames'])
+    extra = stage.startswith('peg') or stage == 'revolute_pair'
+    fig, axes = plt.subplots(2 if extra else 1, 1, figsize=(8, 6 if extra else 3.6),
+                             squeeze=False)
+    ax = axes[0, 0]
+    floor = 0.01
+    colours = {}
+    for i, (name, p) in enumerate(poses.items()):
+        rows = p['frames']
+        t = np.array([(r['stamp_ns'] - t0) / 1e9 for r in rows])
+        e = np.array([np.nan if r['add_s_m'] is None else max(r['add_s_m'] * 1000, floor)
+                      for r in rows])
+        line, = ax.plot(t, e, '.-', ms=3, lw=0.8,
+                        label=f"{name} (no pose in {p['no_pose']}/{p['camera_frames']})")
+        colours[name] = line.get_color()
+        lost = np.isnan(e)
+        if lost.any():
+            ax.plot(t[lost], np.full(lost.sum(), floor * 1.3 * 1.6 ** i), 'v',
+                    color=line.get_color(),
+                    mec='red', ms=6)
+    ax.axhline(WRONG_POSE_M * 1000, color='red', ls='--', lw=1,
+               label=f'wrong pose: > {WRONG_POSE_M * 1000:.0f} mm')
+    ax.set_yscale('log')
+    ax.set_ylim(floor, 100)
+    ax.set_ylabel('ADD-S vs truth [mm]')
+    ax.set_title(f'{stage}: published poses (triangles at the bottom: frames without a pose)')
+    ax.legend(fontsize=7, loc='upper right')
+    if stage.startswith('peg') and result.get('frames'):
+        ax2 = axes[1, 0]
+        rows = result['frames']
+        t = np.array([(r['stamp_ns'] - t0) / 1e9 for r in rows])
+        for key, label, mk in (('relative_add_s_observed_m', 'localised', 'o'),
+                               ('relative_add_s_corrected_m', 'after contact correction', 's')):
+            e = np.array([r[key] * 1000 if key in r else np.nan for r in rows])
+            ax2.plot(t, e, mk + '-', ms=3, lw=0.8, label=label)
+        missing = np.array(['relative_add_s_corrected_m' not in r for r in rows])
+        if missing.any():
+            ax2.plot(t[missing], np.zeros(missing.sum()), 'rv', ms=6,
+                     label='no corrected pose')
+        shade = {'approach': '#ffffff', 'sliding': '#e8f0ff', 'inserting': '#fff0d8',
+                 'inserted': '#e8ffe8'}
+        for k, r in enumerate(rows):
+            lo = t[k] - (t[k] - t[k - 1]) / 2 if k else t[k]
+            hi = t[k] + (t[k + 1] - t[k]) / 2 if k + 1 < len(rows) else t[k]
+            ax2.axvspan(lo, hi, color=shade[r['phase']], lw=0, zorder=0)
+        ax2.set_ylabel('peg ADD-S relative to block [mm]')
+        ax2.set_title('peg in the hole block\'s frame; shading: approach (white), sliding '
+                      '(blue), inserting (orange), inserted (green)', fontsize=8)
+        ax2.legend(fontsize=7)
+        ax2.set_xlabel('time [s]')
+    elif stage == 'revolute_pair' and result.get('history'):
+        ax2 = axes[1, 0]
+        h = result['history']
+        t = np.array([(r['stamp_ns'] - t0) / 1e9 for r in h])
+        ax2.plot(t, [r['axis_error_deg'] for r in h], 'o-', ms=3, label='axis direction [deg]')
+        ax2.plot(t, [r['axis_line_distance_m'] * 1000 for r in h], 's-', ms=3,
+                 label='axis line distance [mm]')
+        ax2.legend(fontsize=7)
+        ax2.set_title('joint axis error vs ground truth', fontsize=9)
+        ax2.set_xlabel('time [s]')
+    else:
+        ax.set_xlabel('time [s]')
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
 
 
+def _fmt(sp: Dict[str, float], unit: str = 'mm', digits: int = 2) -> str:
+    if not sp.get('n'):
+        return 'n/a'
+    return (f"median {sp['median']:.{digits}f} / p95 {sp['p95']:.{digits}f} / max "
+            f"{sp['max']:.{digits}f} {unit}")
+
+
+def _pose_table(poses: Dict[str, Any]) -> List[str]:
+    lines = ['| object | camera frames | with pose | no pose (flagged by status / no status) '
+             '| ADD-S median / p95 / max [mm] | > 5 mm | > 5 mm unflagged |',
+             '|---|---|---|---|---|---|---|']
+    for name, p in poses.items():
+        sp = p['add_s_mm']
+        adds = (f"{sp['median']:.2f} / {sp['p95']:.2f} / {sp['max']:.2f}" if sp['n']
+                else 'n/a')
+        lines.append(f"| {name} | {p['camera_frames']} | {p['with_pose']} | {p['no_pose']} "
+                     f"({p['no_pose_flagged']} / {p['no_pose_no_status']}) | {adds} | "
+                     f"{p['beyond_error']} | {p['wrong_unflagged']} |")
+    return lines
+
+
 def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
-    if name == 'peg_in_hole':
-        if not result.get('frames_scored'):
-            return ['no frame made it through the whole graph']
-        return [f"frames scored: {result['frames_scored']} (camera {result['camera_frames']},"
-                f" localised {result['localised_frames']}); contact-corrected: "
-                f"{result['frames_corrected']}",
-                f"peg ADD-S median (camera frame): localised "
-                f"{result['median_add_s_observed_mm']:.2f} mm, after correction "
-                f"{result['median_add_s_corrected_mm']:.2f} mm",
-                f"peg relative to the localised hole block, frames in contact: ADD-S median "
-                f"{result['median_relative_add_s_observed_mm']:.2f} mm localised, "
-                f"{result['median_relative_add_s_corrected_mm']:.2f} mm after correction",
-                f"max penetration observed {result['max_penetration_observed_mm']:.2f} mm; max "
-                f"contact residual after correction {result['max_contact_residual_after_mm']:.4f}"
-                f" mm; rotation ranks seen {result['rotation_ranks_seen']}"]
-    if name == 'revolute_pair':
+    lines: List[str] = []
+    if name.startswith('peg_in_hole'):
+        lines.append(f"frames: {result['camera_frames']} from the camera, "
+                     f"{result['frames_scored']} with a corrected pose, "
+                     f"{result['frames_corrected']} contact-corrected")
+        for phase, ph in result['phases'].items():
+            lines.append(
+                f"{phase} ({ph['frames']} frames, {ph['frames_scored']} scored, "
+                f"{ph['contact_corrected']} corrected): peg ADD-S relative to the localised "
+                f"block: localised {_fmt(ph['relative_add_s_observed_mm'])}; after correction "
+                f"{_fmt(ph['relative_add_s_corrected_mm'])}")
+        lines.append(f"max penetration observed {result['max_penetration_observed_mm']:.2f} "
+                     f"mm; max contact residual after correction "
+                     f"{result['max_contact_residual_after_mm']:.4f} mm; rotation ranks seen "
+                     f"{result['rotation_ranks_seen']}")
+    elif name == 'revolute_pair':
         if 'final_type' not in result:
-            return [f"no joint estimate scored ({result['estimates']} estimates, "
-                    f"{result['localised_frames']} localised frames)"]
-        return [f"joint type: {result['final_type']} (true: {result['true_type']}), "
-                f"{result['final_samples']} poses",
-                f"axis direction error {result['final_axis_error_deg']:.2f} deg, axis line "
-                f"distance {result['final_axis_line_distance_mm']:.2f} mm"]
-    return [f"{obj}: " + (f"degree {r['degree']}, RMS distance {r['rms_distance_mm']:.2f} mm over "
-                          f"{r['points']} points" if r.get('fits') else 'no fit')
-            for obj, r in result['objects'].items()]
+            lines.append(f"no joint estimate scored ({result['estimates']} estimates, "
+                         f"{result['localised_frames']} localised frames)")
+        else:
+            lines += [f"joint type: {result['final_type']} (true: {result['true_type']}), "
+                      f"{result['final_samples']} poses",
+                      f"axis direction error {result['final_axis_error_deg']:.2f} deg, axis "
+                      f"line distance {result['final_axis_line_distance_mm']:.2f} mm"]
+    else:
+        lines += [f"{obj}: " + (f"degree {r['degree']}, RMS distance {r['rms_distance_mm']:.2f}"
+                                f" mm over {r['points']} points" if r.get('fits') else 'no fit')
+                  for obj, r in result['objects'].items()]
+    live = result.get('live')
+    if live:
+        lines.append(f"free-running: camera {live['camera_rate_hz']:.2f} Hz "
+                     f"({live['camera_frames']} frames)")
+        for topic, v in live.items():
+            if isinstance(v, dict):
+                lines.append(f"{topic}: {v['rate_hz']:.2f} Hz, latency "
+                             f"{_fmt(v['latency_ms'], 'ms', 1)}, {v['frames_missing']} "
+                             f"frames missing")
+    return lines
 
 
 def _stage_ok(name: str, result: Dict[str, Any]) -> bool:
-    if name == 'peg_in_hole':
+    if name.startswith('peg_in_hole'):
         return result.get('frames_scored', 0) > 0
     if name == 'revolute_pair':
         return 'final_type' in result
     return all(r.get('fits', 0) > 0 for r in result['objects'].values())
 
 
+def unflagged_wrong_poses(result: Dict[str, Any]) -> int:
+    """Published poses beyond the error threshold that no TrackStatus flagged."""
+    return sum(p['wrong_unflagged'] for p in (result.get('poses') or {}).values())
+
+
 def main(args: Optional[Sequence[str]] = None) -> int:
-    """Run the demo stages; returns 0 when every stage produced a scored result."""
+    """Run the demo stages; returns 0 when every stage produced a scored result and no stage
+    published a wrong pose (ADD-S > 5 mm) without flagging it."""
     parser = argparse.ArgumentParser(prog='demo', description=__doc__.split('\n\n')[0])
     parser.add_argument('--out', default='demo_output', help='report directory')
     parser.add_argument('--frames', type=float, default=1.0,
-                        help='scale the number of frames of every stage (e.g. 0.5 for a '
-                             'quicker run)')
+                        help='scale the number of frames (and free-running seconds) of every '
+                             'stage (e.g. 0.5 for a quicker run)')
     parser.add_argument('--frame-timeout', type=float, default=20.0,
                         help='seconds to wait for the graph to finish one frame')
     parser.add_argument('--stages', nargs='+', choices=list(STAGES), default=list(STAGES))
@@ -454,51 +770,76 @@ def main(args: Optional[Sequence[str]] = None) -> int:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
-    report: Dict[str, Any] = {'stages': {}}
+    report: Dict[str, Any] = {'stages': {}, 'wrong_pose_threshold_mm': WRONG_POSE_M * 1000}
     md = ['# stereo_manip demo report', '',
-          'Synthetic scenes through a live graph of separate processes; the camera is '
-          'software-triggered frame by frame; every figure is scored against the synthetic '
-          'camera\'s exact ground truth.', '']
+          'Synthetic scenes through a live graph of separate processes, scored against the '
+          'synthetic camera\'s exact ground truth. Triggered stages publish one frame at a time '
+          '(every frame crosses the whole graph); `peg_in_hole_live` runs the camera free at 10 '
+          'Hz, so frames the graph cannot keep up with are lost and counted. A published pose '
+          f'more than {WRONG_POSE_M * 1000:.0f} mm (ADD-S) from the truth is *wrong*; the demo '
+          'fails if one is not flagged by the localiser\'s TrackStatus.', '']
     ok = True
+    t_demo = time.monotonic()
     for name in opts.stages:
         stage = STAGES[name]()
         stage.frames = max(1, int(round(stage.frames * opts.frames)))
-        print(f'== stage {name}: {stage.description} ({stage.frames} frames)', flush=True)
+        stage.live_seconds *= opts.frames
+        what = (f'{stage.live_seconds:.0f} s free-running' if stage.live_seconds
+                else f'{stage.frames} frames')
+        print(f'== stage {name}: {stage.description} ({what})', flush=True)
         t0 = time.monotonic()
+        info: Dict[str, Any] = {'tails': {}}
         try:
             data, info = run_stage(stage, opts.frame_timeout,
                                    log=lambda s: print(s, flush=True))
-            result = stage.score(data, stage)
+            result = stage.score(data, stage, info.get('window'))
+            if info.get('window'):
+                result['live'] = live_figures(
+                    info['receipts'], info['window'], stage.stamp_topic,
+                    [t for t in stage.topics if not t.endswith('_truth')])
         except RuntimeError as exc:
             print(f'stage {name} failed: {exc}', file=sys.stderr, flush=True)
-            result, info = {'error': str(exc)}, {'tails': {}}
+            result = {'error': str(exc)}
         result['wall_time_s'] = time.monotonic() - t0
         for node, text in info.get('logs', {}).items():
             (out / f'{name}.{node}.log').write_text(text)
-        result['frames_triggered'] = stage.frames
+        result['frames_triggered'] = info.get('frames_triggered')
         result['frames_timed_out'] = info.get('frames_timed_out')
         result['seconds_per_frame'] = info.get('seconds_per_frame')
+        result['unavailable_topics'] = info.get('unavailable_topics')
         stage_ok = 'error' not in result and _stage_ok(name, result)
-        ok &= stage_ok
+        wrong = unflagged_wrong_poses(result) if 'error' not in result else 0
+        result['unflagged_wrong_poses'] = wrong
+        ok &= stage_ok and wrong == 0
         report['stages'][name] = result
-        fig = _figure(name, result, out / f'{name}.png') if stage_ok else None
+        fig = _figure(name, result, out / f'{name}.png') if 'error' not in result else None
         lines = _summary_lines(name, result) if 'error' not in result else [result['error']]
-        if 'error' not in result:
+        if 'error' not in result and not stage.live_seconds:
             lines.append(f"{stage.frames} frames at {result['seconds_per_frame']:.2f} s per "
                          f"frame through the graph; {result['frames_timed_out']} timed out")
+        if wrong:
+            lines.append(f'**FAIL: {wrong} published pose(s) wrong by more than '
+                         f'{WRONG_POSE_M * 1000:.0f} mm and not flagged**')
         md += [f'## {name}: {stage.description}', ''] + [f'- {line}' for line in lines]
+        if 'error' not in result and result.get('poses'):
+            md += [''] + _pose_table(result['poses'])
         if fig:
             md += ['', f'![{name}]({fig.name})']
         md.append('')
         for line in lines:
             print(f'  {line}', flush=True)
+        if 'error' not in result:
+            for line in _pose_table(result['poses'])[2:]:
+                print(f'  {line}', flush=True)
         if not stage_ok:
             print(f'  stage {name} produced no scored result; node output tails:', flush=True)
             for node, tail in info['tails'].items():
                 print(f'  --- {node}\n{tail}', flush=True)
+    report['wall_time_s'] = time.monotonic() - t_demo
+    md.append(f"Whole demo: {report['wall_time_s']:.0f} s.")
     (out / 'report.json').write_text(json.dumps(report, indent=2, default=str) + '\n')
     (out / 'report.md').write_text('\n'.join(md) + '\n')
-    print(f'report: {out / "report.md"}', flush=True)
+    print(f'report: {out / "report.md"} ({report["wall_time_s"]:.0f} s)', flush=True)
     return 0 if ok else 1
 
 

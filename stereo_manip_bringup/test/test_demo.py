@@ -72,6 +72,7 @@ def test_launch_file_builds_the_demo_graph(monkeypatch):
     assert names == [s.node_name for s in demo.STAGES['revolute_pair']().nodes]
     camera = made[0]
     assert camera['parameters'][0]['trigger'] is False and camera['parameters'][0]['rate'] == 5.0
+    assert all(n['additional_env']['OPENBLAS_NUM_THREADS'] == '1' for n in made)
     for n in made:
         assert executable_path(n['package'], n['executable']).is_file()
 

@@ -1,0 +1,501 @@
+"""Contact relation recognition under pose noise, frame by frame and over a track.
+
+Detecting the relation with one distance tolerance fails on real stereo poses (errors of a few
+millimetres and degrees): a tight tolerance misses contacts, a wide one takes every element
+near the other object as a contact. Here the relation is *selected*, as a model:
+
+1. **Pool**: every element pair within ``search_margin`` of contact at the observed pose
+   (:func:`~contact_correction.contact_relation.detect_contact_relation` with the margin as
+   separation, penetration and element tolerance).
+2. **Groups**: the pool's pairs are grouped into contact primitives that are on or off
+   together: all pairs of one face of the moving object lying against one face of the fixed
+   object (opposite normals: a face-face contact, with its vertex-face, face-vertex and
+   edge-edge pairs), an edge lying on a face, and single vertex-face / face-vertex / edge-edge
+   contacts. A group key names elements only, so it is the same in every frame of a track.
+3. **Score** of a candidate relation S (a set of groups), from the stated pose noise
+   (``sigma_translation`` [m] at the moving object's origin, ``sigma_rotation`` [rad]): to
+   first order (Eq. 2's rows ``a_k``, distances ``d_k``), the smallest correction that brings
+   every pair of S to contact has the Mahalanobis size
+   ``chi2(S) = d_S^T (A_S Sigma A_S^T + sigma_model^2 I)^-1 d_S``; pairs outside S that this
+   correction would push into penetration are added as active constraints (the relation says
+   "not in contact", i.e. ">= 0") and their cost counted. The score is
+   ``chi2(S) + free_dof_penalty * (6 - rank(S))``: each degree of freedom the relation leaves
+   free costs a fixed penalty (an information criterion: a relation with more free parameters
+   explains any observation; the BIC-like penalty is ``2 ln(range / (sqrt(2 pi) sigma))`` for a
+   gap uniformly distributed over ``range`` when not in contact), so a contact is kept when the
+   correction it needs is small against the noise and dropped when it is not.
+4. **Search**: greedy toggling of single groups from the previous frame's relation and from the
+   best of (all groups, no group), evaluating a few dozen candidates per frame.
+5. **Temporal model** (:class:`RelationTracker`): contact states change rarely. A Viterbi
+   recursion over the candidate relations of consecutive frames, with a cost
+   ``switch_cost`` per group switched on or off between frames (a Markov chain over contact
+   states; ``-2 ln`` of the switching probability), selects the relation sequence of least
+   total cost. Online (node) the current best path's end is used, which gives hysteresis;
+   offline (:func:`recognise_track`) the whole sequence is back-tracked.
+
+All quantities are in the fixed object's model frame, metres and radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, FrozenSet, Hashable, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .contact_relation import (
+    EDGE, FACE, VERTEX, ContactPair, detect_contact_relation, evaluate_contacts,
+    relative_pose)
+from .polyhedron import Polyhedron, cross3
+
+__all__ = ['RecognitionOptions', 'Hypothesis', 'FrameCandidates', 'RelationRecognizer',
+           'RelationTracker', 'recognise_track', 'group_key']
+
+GroupKey = Tuple[Hashable, ...]
+State = FrozenSet[GroupKey]
+
+
+@dataclass
+class RecognitionOptions:
+    """Parameters of relation recognition (see the module docstring).
+
+    :ivar sigma_translation: stated pose noise, translation of the moving origin [m] (1 sigma).
+    :ivar sigma_rotation: stated pose noise, rotation [rad] (1 sigma).
+    :ivar sigma_model: model / linearisation error added to every contact distance [m].
+    :ivar search_margin: pool margin [m]; None = 3 (sigma_t + sigma_r * size / 2).
+    :ivar free_dof_penalty: score cost of each degree of freedom left free (3: chosen on the
+        synthetic tracks of :mod:`.tracks` with another noise seed than the benchmark's; the
+        BIC-like value ``2 ln(range / (sqrt(2 pi) sigma))`` is 2-4 for gaps over a
+        centimetre at millimetre noise); None = ``max(2, 2 ln(search_margin /
+        (sqrt(2 pi) sigma_t)) + 2)``.
+    :ivar switch_cost: score cost per group switched on or off between consecutive frames.
+    :ivar angle_tolerance: angular slack of the pool's local tests and of the face-against-face
+        grouping [rad]; None = max(0.1, 4 sigma_r).
+    :ivar beam: relations kept per frame by the temporal model.
+    """
+
+    sigma_translation: float = 0.002
+    sigma_rotation: float = float(np.deg2rad(2.0))
+    sigma_model: float = 2e-4
+    search_margin: Optional[float] = None
+    free_dof_penalty: Optional[float] = 3.0
+    switch_cost: float = 20.0
+    angle_tolerance: Optional[float] = None
+    beam: int = 6
+
+    def validate(self) -> None:
+        """:raises ValueError: on a non-finite or out-of-range value, naming it."""
+        for name in ('sigma_translation', 'sigma_rotation', 'sigma_model', 'switch_cost'):
+            v = getattr(self, name)
+            if not np.isfinite(v) or v < 0:
+                raise ValueError(f'{name} must be a finite number >= 0, got {v}')
+        if self.sigma_translation <= 0 or self.sigma_rotation <= 0:
+            raise ValueError('sigma_translation and sigma_rotation must be > 0')
+        for name in ('search_margin', 'free_dof_penalty', 'angle_tolerance'):
+            v = getattr(self, name)
+            if v is not None and (not np.isfinite(v) or v < 0):
+                raise ValueError(f'{name} must be a finite number >= 0 (or unset), got {v}')
+        if int(self.beam) < 1:
+            raise ValueError(f'beam must be >= 1, got {self.beam}')
+
+    def margin(self, moving: Polyhedron) -> float:
+        """The pool margin [m] for ``moving``."""
+        if self.search_margin is not None:
+            return float(self.search_margin)
+        return 3.0 * (self.sigma_translation + self.sigma_rotation * moving.size / 2.0)
+
+    def penalty(self, moving: Polyhedron) -> float:
+        """The per-free-DOF penalty."""
+        if self.free_dof_penalty is not None:
+            return float(self.free_dof_penalty)
+        r = self.margin(moving) / (np.sqrt(2.0 * np.pi) * self.sigma_translation)
+        return float(max(2.0, 2.0 * np.log(max(r, 1.0)) + 2.0))
+
+    def angle(self) -> float:
+        """Angular slack [rad]."""
+        if self.angle_tolerance is not None:
+            return float(self.angle_tolerance)
+        return float(max(0.1, 4.0 * self.sigma_rotation))
+
+
+@dataclass
+class Hypothesis:
+    """One candidate relation of a frame.
+
+    :ivar state: its group keys.
+    :ivar pairs: its pairs (from the frame's pool).
+    :ivar chi2: Mahalanobis size of the first-order correction it needs.
+    :ivar rank: constraint rank of Eq. 2 for its pairs.
+    :ivar score: ``chi2 + penalty * (6 - rank)``.
+    :ivar pushed: pairs outside the relation that the correction had to keep out of
+        penetration.
+    """
+
+    state: State
+    pairs: Tuple[ContactPair, ...]
+    chi2: float
+    rank: int
+    score: float
+    pushed: int = 0
+
+
+@dataclass
+class FrameCandidates:
+    """The pool, its groups and the candidate relations evaluated for one frame."""
+
+    pool: List[ContactPair]
+    groups: Dict[GroupKey, np.ndarray]
+    hypotheses: Dict[State, Hypothesis] = field(default_factory=dict)
+    best: Optional[Hypothesis] = None
+
+    def ranked(self) -> List[Hypothesis]:
+        """Hypotheses, best (lowest score) first."""
+        return sorted(self.hypotheses.values(), key=lambda h: h.score)
+
+
+def _faces_of_edge(poly: Polyhedron, e: int) -> np.ndarray:
+    return poly.edge_faces[e]
+
+
+def group_key(moving: Polyhedron, fixed: Polyhedron, R: np.ndarray, pair: ContactPair,
+              cos_tol: float) -> GroupKey:
+    """Pose-independent key of the contact primitive ``pair`` belongs to.
+
+    ``R`` rotates moving-model directions into the fixed frame (observed pose). A pair whose
+    elements lie on a moving face and a fixed face with opposite normals (within the angular
+    slack) belongs to that face-face contact ``('ff', g, f)``; a vertex-face pair whose vertex
+    has an edge lying on the face belongs to the edge-face contact ``('ef', e, f)``; other pairs
+    are their own group.
+    """
+    if pair.moving_type == VERTEX and pair.fixed_type == FACE:
+        v, f = pair.moving_index, pair.fixed_index
+        nf = fixed.face_normals[f]
+        faces = moving.vertex_faces[v]
+        c = (moving.face_normals[faces] @ R.T) @ nf
+        k = int(np.argmin(c))
+        if c[k] < -cos_tol:
+            return ('ff', int(faces[k]), f)
+        d = (moving.vertex_edge_dirs[v] @ R.T) @ nf
+        on = np.flatnonzero(np.abs(d) < np.sqrt(max(0.0, 1.0 - cos_tol ** 2)))
+        if len(on) == 1:
+            return ('ef', int(moving.vertex_edges[v][on[0]]), f)
+        return ('vf', v, f)
+    if pair.moving_type == FACE and pair.fixed_type == VERTEX:
+        g, w = pair.moving_index, pair.fixed_index
+        ng = R @ moving.face_normals[g]
+        faces = fixed.vertex_faces[w]
+        c = fixed.face_normals[faces] @ ng
+        k = int(np.argmin(c))
+        if c[k] < -cos_tol:
+            return ('ff', g, int(faces[k]))
+        return ('fv', g, w)
+    if pair.moving_type == EDGE and pair.fixed_type == EDGE:
+        gm = _faces_of_edge(moving, pair.moving_index)
+        gf = _faces_of_edge(fixed, pair.fixed_index)
+        c = (moving.face_normals[gm] @ R.T) @ fixed.face_normals[gf].T       # (2, 2)
+        i, j = np.unravel_index(int(np.argmin(c)), c.shape)
+        if c[i, j] < -cos_tol:
+            return ('ff', int(gm[i]), int(gf[j]))
+        em = R @ moving.edge_directions[pair.moving_index]
+        for f in gf:     # the moving edge lying on a face of the fixed edge: edge-face
+            if abs(em @ fixed.face_normals[f]) < np.sqrt(max(0.0, 1.0 - cos_tol ** 2)):
+                return ('ef', pair.moving_index, int(f))
+        return ('ee', pair.moving_index, pair.fixed_index)
+    return ('other', pair.moving_type, pair.moving_index, pair.fixed_type, pair.fixed_index)
+
+
+class RelationRecognizer:
+    """Per-frame candidate relations and their scores (see the module docstring).
+
+    :param moving: moving object's polyhedron.
+    :param fixed: fixed object's polyhedron.
+    :param options: noise model and search parameters.
+    """
+
+    def __init__(self, moving: Polyhedron, fixed: Polyhedron,
+                 options: Optional[RecognitionOptions] = None) -> None:
+        self.moving, self.fixed = moving, fixed
+        self._guard = np.zeros(0, dtype=bool)
+        self.options = options or RecognitionOptions()
+        self.options.validate()
+        self.margin = self.options.margin(moving)
+        self.penalty = self.options.penalty(moving)
+        self.angle = self.options.angle()
+        self.cos_tol = float(np.cos(self.angle))
+        o = self.options
+        self._w = np.array([o.sigma_rotation] * 3 + [o.sigma_translation] * 3)
+
+    # --- one frame -------------------------------------------------------------------------
+
+    def frame(self, T_moving: np.ndarray, T_fixed: np.ndarray,
+              seeds: Sequence[State] = ()) -> FrameCandidates:
+        """Pool, groups and the greedy search of the best relation at one observed pose.
+
+        :param seeds: relations to start the search from and to score in any case (e.g. the
+            temporal model's current states).
+        """
+        T_rel = relative_pose(T_moving, T_fixed)
+        pool = detect_contact_relation(self.moving, self.fixed, T_moving, T_fixed,
+                                       tolerance=self.margin,
+                                       penetration_tolerance=self.margin,
+                                       angle_tolerance=self.angle)
+        R = T_rel[:3, :3]
+        keys = [group_key(self.moving, self.fixed, R, p, self.cos_tol) for p in pool]
+        groups: Dict[GroupKey, List[int]] = {}
+        for k, key in enumerate(keys):
+            groups.setdefault(key, []).append(k)
+        fc = FrameCandidates(pool, {k: np.asarray(v) for k, v in groups.items()})
+        if pool:
+            g = evaluate_contacts(self.moving, self.fixed, T_rel, pool)
+            c = T_rel[:3, 3]
+            A = np.hstack([cross3(g.points - c, g.normals), g.normals])
+            self._A = A * self._w          # whitened: noise of unit variance per column
+            self._d = g.distances
+            self._guard = self._guarded(T_rel, pool, g.distances)
+            self._P = self._A[:, :, None] * self._A[:, None, :]
+            self._gsum = {}
+            for key, idx in fc.groups.items():
+                Ai, di = self._A[idx], self._d[idx]
+                self._gsum[key] = (self._P[idx].sum(0), Ai.T @ di, float(di @ di))
+        else:
+            self._A = np.zeros((0, 6))
+            self._d = np.zeros(0)
+            self._guard = np.zeros(0, dtype=bool)
+        self._fc = fc
+        empty: State = frozenset()
+        starts = [self.evaluate(empty), self.evaluate(frozenset(fc.groups))]
+        for s in seeds:
+            h = self.evaluate(frozenset(s))
+            if h is not None:
+                starts.append(h)
+        for h in sorted(starts, key=lambda h: h.score)[:3]:
+            self._climb(h)
+        fc.best = min(fc.hypotheses.values(), key=lambda h: h.score)
+        return fc
+
+    def _guarded(self, T_rel: np.ndarray, pool: Sequence[ContactPair],
+                 distances: np.ndarray) -> np.ndarray:
+        """Pairs whose non-penetration a relation must respect when they are not part of it:
+        a vertex near its face's region, on the outside, or inside the other solid with this
+        face (within the noise) the nearest to it; edge-edge pairs (crossing on both edges).
+        A vertex behind a face's plane but outside the solid (e.g. over the top face next to a
+        hole wall) is not penetrating that face."""
+        out = np.ones(len(pool), dtype=bool)
+        tol = 1.5 * self.options.sigma_translation
+        R, t = T_rel[:3, :3], T_rel[:3, 3]
+        Ri, ti = R.T, -R.T @ t
+        for k, p in enumerate(pool):
+            if p.moving_type == VERTEX:
+                x, solid, f = R @ self.moving.vertices[p.moving_index] + t, self.fixed, \
+                    p.fixed_index
+            elif p.fixed_type == VERTEX:
+                x, solid, f = Ri @ self.fixed.vertices[p.fixed_index] + ti, self.moving, \
+                    p.moving_index
+            else:
+                continue
+            d = distances[k]
+            to_face = float(solid.face_distance(f, x[None])[0])
+            if d >= 0:
+                out[k] = to_face <= d + tol
+            elif solid.contains(x[None])[0] > 0.5:
+                out[k] = to_face <= float(solid.distance_to_surface(x[None])[0]) + tol
+            else:
+                out[k] = False
+        return out
+
+    def last_guard(self) -> np.ndarray:
+        """Guard flags of the last frame's pool (see :meth:`_guarded`)."""
+        return self._guard
+
+    def _climb(self, h: Hypothesis) -> Hypothesis:
+        keys = list(self._fc.groups)
+        for _ in range(2 * len(keys) + 1):
+            best = h
+            for k in keys:
+                s = h.state - {k} if k in h.state else h.state | {k}
+                c = self.evaluate(s)
+                if c is not None and c.score < best.score - 1e-9:
+                    best = c
+            if best is h:
+                return h
+            h = best
+        return h
+
+    def evaluate(self, state: State) -> Optional[Hypothesis]:
+        """Score of the relation ``state`` in the current frame (None if one of its groups is
+        not in the pool: the relation is not possible within the margin)."""
+        fc = self._fc
+        if state in fc.hypotheses:
+            return fc.hypotheses[state]
+        if any(k not in fc.groups for k in state):
+            return None
+        n = len(fc.pool)
+        mask = np.zeros(n, dtype=bool)
+        for k in state:
+            mask[fc.groups[k]] = True
+        # chi2 = d^T (A A^T + s2 I)^-1 d through the 6x6 normal matrix (Woodbury):
+        # = (d.d - b^T (s2 I + A^T A)^-1 b) / s2, b = A^T d; correction = -(s2 I + A^T A)^-1 b
+        s2 = self.options.sigma_model ** 2
+        N = np.zeros((6, 6))
+        b = np.zeros(6)
+        dd = 0.0
+        for k in state:
+            gN, gb, gdd = self._gsum[k]
+            N += gN
+            b += gb
+            dd += gdd
+        w = np.linalg.eigvalsh(N)
+        rank = int(np.count_nonzero(w > 1e-4 * max(w[-1], 1e-300))) if state else 0
+        active = mask.copy()
+        pushed = 0
+        A, d = self._A, self._d
+        for _ in range(4):
+            if not np.any(active):
+                chi2, delta = 0.0, np.zeros(6)
+            else:
+                y = np.linalg.solve(N + s2 * np.eye(6), b)
+                chi2 = float(max(dd - b @ y, 0.0) / s2)
+                delta = -y
+            r = d + A @ delta
+            new = (~active) & self._guard & (r < -3.0 * self.options.sigma_model)
+            if not np.any(new):
+                break
+            idx = np.flatnonzero(new)
+            active[idx] = True
+            N = N + self._P[idx].sum(0)
+            b = b + (A[idx] * d[idx, None]).sum(0)
+            dd += float(d[idx] @ d[idx])
+            pushed = int(np.count_nonzero(active & ~mask))
+        h = Hypothesis(state, tuple(p for p, m in zip(fc.pool, mask) if m), chi2, rank,
+                       chi2 + self.penalty * (6 - rank), pushed)
+        fc.hypotheses[state] = h
+        return h
+
+
+# --- temporal model --------------------------------------------------------------------------
+
+def _switches(a: State, b: State) -> int:
+    return len(a ^ b)
+
+
+class RelationTracker:
+    """Online Viterbi over contact relations (hysteresis): feed frames in order with
+    :meth:`update`; :meth:`reset` after a gap in the track.
+
+    :param recognizer: the per-frame scorer.
+    """
+
+    def __init__(self, recognizer: RelationRecognizer) -> None:
+        self.recognizer = recognizer
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the track (e.g. after a jump in time or a new object)."""
+        self._cost: Dict[State, float] = {}
+        self.history: List[Tuple[FrameCandidates, Dict[State, Tuple[float, Optional[State]]]]] \
+            = []
+
+    def update(self, T_moving: np.ndarray, T_fixed: np.ndarray,
+               keep_history: bool = False) -> Tuple[Hypothesis, FrameCandidates]:
+        """Relation for the next frame: the end state of the least-cost path so far.
+
+        :param keep_history: record the back-pointers for :meth:`backtrack` (offline use).
+        :returns: (chosen hypothesis, the frame's candidates).
+        """
+        rec = self.recognizer
+        fc = rec.frame(T_moving, T_fixed, seeds=list(self._cost))
+        # the beam: the best relations, at most one per (rank, correction size): relations
+        # that differ only by groups adding nothing (e.g. either wall of a tight slot) would
+        # otherwise fill it and hide the alternatives
+        cand: List[Hypothesis] = []
+        seen = set()
+        for h in fc.ranked():
+            sig = (h.rank, round(h.chi2, 1))
+            if sig in seen:
+                continue
+            seen.add(sig)
+            cand.append(h)
+            if len(cand) >= max(1, rec.options.beam):
+                break
+        for s in self._cost:      # previous states that are still possible: keep them
+            h = fc.hypotheses.get(s) or rec.evaluate(s)
+            if h is not None and h not in cand:
+                cand.append(h)
+        sw = rec.options.switch_cost
+        new: Dict[State, Tuple[float, Optional[State]]] = {}
+        for h in cand:
+            if self._cost:
+                prev, c = min(((p, c + sw * _switches(p, h.state))
+                               for p, c in self._cost.items()), key=lambda x: x[1])
+            else:
+                prev, c = None, 0.0
+            new[h.state] = (c + h.score, prev)
+        # keep a beam of the cheapest paths (costs relative to the best, to stay bounded)
+        ordered = sorted(new.items(), key=lambda kv: kv[1][0])[:max(1, rec.options.beam) + 2]
+        base = ordered[0][1][0]
+        self._cost = {s: c - base for s, (c, _) in ordered}
+        if keep_history:
+            self.history.append((fc, {s: (c - base, p) for s, (c, p) in ordered}))
+        best_state = ordered[0][0]
+        return fc.hypotheses[best_state], fc
+
+    def backtrack(self) -> List[Hypothesis]:
+        """Least-cost relation sequence over the recorded frames (offline Viterbi)."""
+        if not self.history:
+            return []
+        out: List[Hypothesis] = []
+        fc, table = self.history[-1]
+        state = min(table, key=lambda s: table[s][0])
+        for fc, table in reversed(self.history):
+            if state not in table:    # pruned from this frame's beam: take its best
+                state = min(table, key=lambda s: table[s][0])
+            out.append(fc.hypotheses[state])
+            state = table[state][1]
+            if state is None:
+                state = frozenset()
+        return out[::-1]
+
+
+def recognise_track(recognizer: RelationRecognizer, moving_poses: np.ndarray,
+                    fixed_poses: np.ndarray, smooth: bool = True,
+                    return_guards: bool = False) -> tuple:
+    """Relations of a whole track: Viterbi back-tracking (``smooth``) or the online choice.
+
+    :param moving_poses: observed poses (N, 4, 4); frames with non-finite poses get the empty
+        relation and break the chain.
+    :param fixed_poses: fixed poses (N, 4, 4).
+    :returns: per frame the chosen hypothesis and the frame's candidates (and, with
+        ``return_guards``, the pool's guard flags).
+    """
+    Tm = np.asarray(moving_poses, dtype=float).reshape(-1, 4, 4)
+    Tf = np.asarray(fixed_poses, dtype=float).reshape(-1, 4, 4)
+    chosen: List[Optional[Hypothesis]] = []
+    frames: List[FrameCandidates] = []
+    guards: List[np.ndarray] = []
+    segment: List[int] = []
+    tracker = RelationTracker(recognizer)
+    empty = Hypothesis(frozenset(), (), 0.0, 0, float('nan'))
+
+    def flush() -> None:
+        if smooth and segment:
+            for k, h in zip(segment, tracker.backtrack()):
+                chosen[k] = h
+        tracker.reset()
+        segment.clear()
+
+    for k in range(len(Tm)):
+        if not (np.all(np.isfinite(Tm[k])) and np.all(np.isfinite(Tf[k]))):
+            flush()
+            chosen.append(empty)
+            frames.append(FrameCandidates([], {}))
+            guards.append(np.zeros(0, dtype=bool))
+            continue
+        h, fc = tracker.update(Tm[k], Tf[k], keep_history=smooth)
+        chosen.append(h)
+        frames.append(fc)
+        guards.append(recognizer.last_guard())
+        segment.append(k)
+    flush()
+    if return_guards:
+        return chosen, frames, guards
+    return chosen, frames

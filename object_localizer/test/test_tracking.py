@@ -1,0 +1,196 @@
+"""Tracking, the quality check and the track states against ground truth (pure core, no ROS)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from object_localizer.evaluation import add_s, sample_visible_surface
+from object_localizer.tracking import check_pose, ObjectTracker, predict_constant_velocity, \
+    prepare_tracking_model, SceneCloud, TrackerSettings, TrackState
+from stereo_manip_tools.mesh_io import find_model, load_obj
+from stereo_manip_tools.transforms import make_transform, rotation_about_axis
+
+
+@pytest.fixture(scope='module')
+def arm():
+    mesh = load_obj(find_model('link_arm'))
+    return mesh, prepare_tracking_model(mesh)
+
+
+def wall_behind(T, rng, distance=0.08, n=20000):
+    """A plane facing the sensor ``distance`` [m] behind the object's origin (a table/wall)."""
+    c = T[:3, 3] + np.array([0.0, 0.0, distance])
+    xy = rng.uniform(-0.25, 0.25, size=(n, 2))
+    return np.column_stack([c[0] + xy[:, 0], c[1] + xy[:, 1], np.full(n, c[2])])
+
+
+def observe(mesh, T, rng, noise=0.0007, wall=True):
+    """Visible surface of the object (noisy) and a wall behind it, minus what it hides."""
+    P = sample_visible_surface(mesh, T, 12000, seed=int(rng.integers(1 << 30)))
+    P = P + rng.normal(scale=noise, size=P.shape)
+    if not wall:
+        return P
+    W = wall_behind(T, rng)
+    # drop wall points hidden by the object (their ray passes within 3 mm of an object point)
+    ang = P[:, :2] / P[:, 2:3]
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(ang).query(W[:, :2] / W[:, 2:3])
+    return np.vstack([P, W[d * W[:, 2] > 0.003]])
+
+
+def moving_pose(k):
+    return make_transform(rotation_about_axis([0.3, 1, 0.1], 1.0 + 0.03 * k),
+                          [0.004 * k, 0.002 * k, 0.8])
+
+
+def test_constant_velocity_prediction_is_exact_for_constant_motion(arm):
+    _, model = arm
+    w = rotation_about_axis([0.2, -0.5, 1.0], 0.05)
+
+    def pose(k):
+        R = np.linalg.matrix_power(w, k) @ rotation_about_axis([1, 0, 0], 0.3)
+        c = np.array([0.01 * k, -0.004 * k, 0.7])
+        return make_transform(R, c - R @ model.centre)
+    history = ((0, pose(0)), (33_000_000, pose(1)))
+    pred = predict_constant_velocity(model, history, 66_000_000)
+    assert np.allclose(pred, pose(2), atol=1e-9)
+    # a long gap is capped at 3 intervals
+    capped = predict_constant_velocity(model, history, 33_000_000 * 50)
+    assert np.allclose(capped, pose(4), atol=1e-9)
+
+
+def test_tracker_follows_a_moving_object_and_keeps_a_bounded_history(arm):
+    mesh, model = arm
+    rng = np.random.default_rng(4)
+    tracker = ObjectTracker(model, TrackerSettings(max_history=4))
+    tracker.reset(moving_pose(0) @ make_transform(rotation_about_axis([1, 0, 0], 0.03),
+                                                  [0.003, -0.002, 0.002]))
+    worst = 0.0
+    for k in range(8):
+        res = tracker.update(observe(mesh, moving_pose(k), rng), k * 33_000_000)
+        assert res.pose is not None, res.reason
+        assert res.state == TrackState.TRACKING
+        assert res.quality.passed and 0.5 < res.quality.quality <= 1.0
+        worst = max(worst, add_s(res.pose, moving_pose(k), model.points))
+    assert worst < 0.001
+    assert len(tracker.history) == 4
+    assert tracker.acquisitions == 0       # the hint was close enough: no global search
+
+
+def test_check_rejects_poses_a_few_millimetres_off(arm):
+    """The visibility-aware check passes the truth and fails a pose pushed 6 mm towards the
+    wall (the wall is seen where the object would be: free space) or 6 mm sideways."""
+    mesh, model = arm
+    rng = np.random.default_rng(5)
+    T = moving_pose(3)
+    scene = SceneCloud(observe(mesh, T, rng))
+    s = TrackerSettings()
+
+    def check(pose):
+        c = pose[:3, :3] @ model.centre + pose[:3, 3]
+        return check_pose(model, pose, scene.cone(c, model.radius), s)
+    good = check(T)
+    assert good.passed, good.reason
+    assert good.inlier_fraction > 0.9 and good.visible_residual < 0.0012
+    for offset in ([0.0, 0.0, 0.006], [0.006, 0.0, 0.0], [0.0, 0.0, -0.006]):
+        bad = check(make_transform(np.eye(3), offset) @ T)
+        assert not bad.passed, (offset, bad)
+        assert bad.quality < good.quality
+
+
+def test_a_wrong_hint_is_not_trusted(arm):
+    """An initial pose 40 mm off fails the check: the global acquisition runs and its result is
+    verified before it is published."""
+    mesh, model = arm
+    rng = np.random.default_rng(6)
+    T = moving_pose(0)
+    calls = []
+
+    def acquirer(m, points, seed):
+        calls.append(seed)
+        return [T @ make_transform(rotation_about_axis([0, 1, 0], 0.02), [0.002, 0, 0])]
+    tracker = ObjectTracker(model, TrackerSettings(), acquirer=acquirer)
+    tracker.reset(make_transform(np.eye(3), [0.04, 0.0, 0.0]) @ T)
+    res = tracker.update(observe(mesh, T, rng), 0)
+    assert calls and res.acquired and res.pose is not None
+    assert 'initial pose rejected' in res.reason
+    assert add_s(res.pose, T, model.points) < 0.001
+
+
+def test_loss_is_reported_and_the_object_reacquired(arm):
+    """The object jumps 15 cm between clouds: the tracked pose fails, no pose is published, the
+    state is LOST; the next cloud runs the global acquisition, whose wrong candidate is refused
+    and whose right one is published."""
+    mesh, model = arm
+    rng = np.random.default_rng(7)
+    candidates = []
+    tracker = ObjectTracker(model, TrackerSettings(),
+                            acquirer=lambda m, p, seed: list(candidates))
+    tracker.reset(moving_pose(0))
+    assert tracker.update(observe(mesh, moving_pose(0), rng), 0).pose is not None
+    jumped = make_transform(np.eye(3), [0.15, 0.0, 0.0]) @ moving_pose(1)
+    lost = tracker.update(observe(mesh, jumped, rng), 33_000_000)
+    assert lost.pose is None and lost.state == TrackState.LOST
+    assert 'track lost' in lost.reason and lost.quality is not None
+    candidates[:] = [moving_pose(1), jumped]   # a wrong candidate first
+    back = tracker.update(observe(mesh, jumped, rng), 66_000_000)
+    assert back.pose is not None and back.acquired and back.state == TrackState.TRACKING
+    assert add_s(back.pose, jumped, model.points) < 0.001
+    assert tracker.lost_count == 1
+
+
+def test_nothing_is_published_when_the_object_is_gone(arm):
+    mesh, model = arm
+    rng = np.random.default_rng(8)
+    tracker = ObjectTracker(model, TrackerSettings(), acquirer=lambda m, p, seed: [
+        moving_pose(0)])
+    tracker.reset(moving_pose(0))
+    assert tracker.update(observe(mesh, moving_pose(0), rng), 0).pose is not None
+    only_wall = wall_behind(moving_pose(0), rng)
+    for k in range(1, 4):
+        res = tracker.update(only_wall, k * 33_000_000)
+        assert res.pose is None and res.state == TrackState.LOST, res.reason
+
+
+def test_static_object_is_held_and_rechecked(arm):
+    mesh, model = arm
+    rng = np.random.default_rng(9)
+    T = moving_pose(2)
+    tracker = ObjectTracker(model, TrackerSettings(static=True, static_recheck_period=0.1))
+    tracker.reset(T)
+    cloud = observe(mesh, T, rng)
+    first = tracker.update(cloud, 0)
+    assert first.state == TrackState.STATIC and first.pose is not None
+    held = tracker.update(cloud, 50_000_000)
+    assert 'held' in held.reason and np.array_equal(held.pose, first.pose)
+    assert held.cpu_seconds < first.cpu_seconds
+    # moved away and re-checked after the period: lost, nothing published
+    moved = observe(mesh, make_transform(np.eye(3), [0.1, 0, 0]) @ T, rng)
+    res = tracker.update(moved, 150_000_000)
+    assert res.pose is None and res.state == TrackState.LOST
+
+
+def test_a_pose_inside_another_object_is_rejected(arm):
+    mesh, model = arm
+    rng = np.random.default_rng(10)
+    T = moving_pose(1)
+    scene = SceneCloud(observe(mesh, T, rng))
+    s = TrackerSettings()
+    c = T[:3, :3] @ model.centre + T[:3, 3]
+    cone = scene.cone(c, model.radius)
+    ok = check_pose(model, T, cone, s)
+    other = T @ make_transform(np.eye(3), [0.04, 0.0, 0.0])  # a copy overlapping it (long axis)
+    inside = check_pose(model, T, cone, s, others=[(model, other)])
+    assert ok.passed and not inside.passed and 'inside link_arm' in inside.reason
+    apart = T @ make_transform(np.eye(3), [0.0, 0.3, 0.0])
+    assert check_pose(model, T, cone, replace(s), others=[(model, apart)]).passed
+
+
+def test_unusable_clouds_raise_clear_errors(arm):
+    _, model = arm
+    tracker = ObjectTracker(model)
+    with pytest.raises(ValueError, match=r'shape \(N, 3\)'):
+        tracker.update(np.zeros((10, 2)), 0)
+    with pytest.raises(ValueError, match='finite points'):
+        tracker.update(np.full((50, 3), np.nan), 0)

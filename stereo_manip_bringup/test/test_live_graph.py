@@ -1,0 +1,33 @@
+"""The peg_in_hole graph as separate processes with the camera free-running at 10 Hz.
+
+Loose bounds, stable on a loaded CI machine: the benchmark (bench/pipeline_realtime.py) holds
+the real goals (>= 10 Hz, <= 100 ms p90). What must hold anywhere: the graph keeps running,
+corrected poses keep coming at a useful rate, and latency stays bounded because every stage
+drops old frames instead of queueing them.
+"""
+
+import pytest
+
+from stereo_manip_bringup import demo
+
+
+@pytest.mark.process
+def test_free_running_graph_keeps_rate_and_bounded_latency():
+    stage = demo.STAGES['peg_in_hole_live']()
+    stage.live_seconds = 8.0
+    data, info = demo.run_stage(stage, log=lambda s: None)
+    live = demo.live_figures(info['receipts'], info['window'], stage.stamp_topic,
+                             ['/objects/peg/pose_corrected', '/objects/peg/status'])
+    assert live['camera_rate_hz'] > 6.0, live                  # the camera free-runs
+    corrected = live['/objects/peg/pose_corrected']
+    assert corrected['rate_hz'] >= 2.0, live
+    # bounded, not queued: a queue would grow by ~100 ms per frame over 8 s
+    assert corrected['latency_ms']['max'] < 1500.0, live
+    assert corrected['latency_ms']['median'] < 600.0, live
+    status = live['/objects/peg/status']
+    # every frame that reached the localiser has a status, verified or not
+    assert status['rate_hz'] >= corrected['rate_hz'] - 0.2, live
+    # nothing wrong goes out unflagged, even in a short live run
+    result = demo.score_peg_in_hole(data, stage, info['window'])
+    assert demo.unflagged_wrong_poses(result) == 0, {
+        n: (p['beyond_error'], p['wrong_unflagged']) for n, p in result['poses'].items()}
