@@ -31,16 +31,18 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 
+from object_localizer.acquisition import prepare_acquisition_model
 from object_localizer.conversions import cloud_xyz, track_status
 from object_localizer.localization import segment_object_points
-from object_localizer.tracking import ObjectTracker, prepare_tracking_model, SceneCloud, \
-    TrackerSettings, TrackState
+from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
+    SceneCloud, TrackerSettings
 from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, stamp_to_ns, \
     xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
-    input_qos_descriptor, input_qos_profile, int_descriptor, reject_nonfinite_parameters
+    input_qos_descriptor, input_qos_profile, int_descriptor, reject_nonfinite_parameters, \
+    string_descriptor
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 
@@ -77,6 +79,11 @@ class ObjectLocalizerNode(Node):
             description='names of `models` that do not move: localised once, then held and '
                         're-verified every static_recheck_period s'))
         self.declare_parameter('input_qos', 'reliable', input_qos_descriptor('points2'))
+        self.declare_parameter('acquisition_method', 'ppf', string_descriptor(
+            'global acquisition: ppf (point-pair-feature voting), fpfh (FPFH + RANSAC), both '
+            'with visibility verification (object_localizer.acquisition), or rough_fine (the '
+            'FPFH + RANSAC + ICP of object_localizer.localization)', read_only=True,
+            additional_constraints='one of ppf, fpfh, rough_fine'))
         self.declare_parameter('voxel_size', 0.003, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE, read_only=True,
             description='sampling resolution of the acquisition templates [m]',
@@ -132,11 +139,15 @@ class ObjectLocalizerNode(Node):
         if initial is not None and len(initial) != 7 * len(names):
             raise ValueError(f'initial_poses has {len(initial)} numbers; expected 7 per model '
                              f'({7 * len(names)} for {names})')
+        acquirer = make_acquirer(self.get_parameter('acquisition_method').value)
         self.trackers: Dict[str, ObjectTracker] = {}
         self.pose_pubs, self.status_pubs, self.track_pubs, self.cloud_pubs = {}, {}, {}, {}
         for k, name in enumerate(names):
             model = prepare_tracking_model(load_obj(find_model(name)), voxel)
-            tracker = ObjectTracker(model, replace(self._settings(), static=name in static))
+            if self.get_parameter('acquisition_method').value != 'rough_fine':
+                model.acquisition = prepare_acquisition_model(model.mesh)
+            tracker = ObjectTracker(model, replace(self._settings(), static=name in static),
+                                    acquirer=acquirer)
             if initial is not None:
                 x, y, z, qx, qy, qz, qw = initial[7 * k:7 * k + 7]
                 tracker.reset(make_transform(matrix_from_quaternion([qx, qy, qz, qw]),
@@ -207,6 +218,8 @@ class ObjectLocalizerNode(Node):
             try:
                 self._process(msg)
             except Exception as exc:  # keep the node alive; the reason is logged and counted
+                if not self.context.ok():
+                    return              # shutting down (Ctrl-C): nothing to publish to
                 self.counts['rejected'] += 1
                 self.get_logger().error(f'cloud not processed: {type(exc).__name__}: {exc}')
 
@@ -224,15 +237,14 @@ class ObjectLocalizerNode(Node):
         verified = []
         for name in self._order:
             tracker = self.trackers[name]
-            before = tracker.state
             with self._settings_lock:
                 result = tracker.update(scene, stamp, verified)
             self._cpu[name].append(result.cpu_seconds)
             if result.pose is not None:
                 verified.append((tracker.model, result.pose))
-            if result.state == TrackState.LOST and before != TrackState.LOST:
+            if result.lost:
                 self.counts['lost'] += 1
-                self.get_logger().warning(f'{name}: {result.reason}; re-acquiring')
+                self.get_logger().warning(f'{name}: {result.reason}')
             if result.acquired:
                 self.counts['acquired'] += 1
                 self.get_logger().info(f'{name}: acquired (quality '

@@ -37,7 +37,7 @@ from collections import deque
 from dataclasses import dataclass, field
 import enum
 import time
-from typing import Callable, Deque, Optional, Sequence, Tuple
+from typing import Any, Callable, Deque, Optional, Sequence, Tuple
 
 import numpy as np
 import open3d as o3d
@@ -48,7 +48,7 @@ from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
 __all__ = ['TrackState', 'TrackerSettings', 'TrackingModel', 'PoseQuality', 'TrackUpdate',
            'SceneCloud', 'prepare_tracking_model', 'predict_constant_velocity', 'track_icp',
-           'check_pose', 'ObjectTracker', 'Acquirer']
+           'check_pose', 'ObjectTracker', 'Acquirer', 'make_acquirer', 'acquire_rough_fine']
 
 
 class TrackState(enum.IntEnum):
@@ -76,6 +76,9 @@ class TrackerSettings:
         the sensor sees a surface behind the model.
     :ivar max_prediction_error: largest mean displacement [m] of the model points between the
         pose and the motion prediction.
+    :ivar prediction_horizon: largest gap [s] between clouds over which the motion is
+        extrapolated and the pose checked against the prediction; after a longer gap (or from a
+        single pose) tracking starts from the last pose with no prediction check.
     :ivar min_view_cos: a model sample counts as expected visible only if the cosine between its
         normal and its line of sight is at least this (surfaces seen at grazing angles are not
         measured reliably by stereo, and are often hidden from the second camera).
@@ -99,6 +102,7 @@ class TrackerSettings:
     max_visible_residual: float = 0.0015
     max_free_space_fraction: float = 0.15
     max_prediction_error: float = 0.02
+    prediction_horizon: float = 0.25
     min_view_cos: float = 0.3
     min_visible_samples: int = 30
     max_penetration: float = 0.005
@@ -130,6 +134,8 @@ class TrackingModel:
     probe: np.ndarray
     solid: o3d.t.geometry.RaycastingScene
     interior: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    mesh: Optional[PolygonMesh] = None
+    acquisition: Any = None       # object_localizer.acquisition.AcquisitionModel, built lazily
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
         """Signed distance [m] of points (M, 3) in the model frame to its surface (< 0
@@ -152,7 +158,7 @@ def prepare_tracking_model(mesh: PolygonMesh, voxel_size: float = 0.003,
     solid = o3d.t.geometry.RaycastingScene()
     solid.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.asarray(mesh.triangles(), dtype=np.uint32)))
-    model = TrackingModel(mesh.name, template, P, N, centre, radius, probe, solid)
+    model = TrackingModel(mesh.name, template, P, N, centre, radius, probe, solid, mesh=mesh)
     box = np.random.default_rng(seed).uniform(P.min(axis=0), P.max(axis=0), size=(4000, 3))
     model.interior = box[model.signed_distance(box) < 0][:400]
     return model
@@ -415,6 +421,8 @@ class TrackUpdate:
     :ivar quality: the check of the best candidate (None: no candidate was found).
     :ivar reason: what happened, for the status message.
     :ivar cpu_seconds: process CPU time spent on this object for this cloud [s].
+    :ivar acquired: the pose comes from the global acquisition.
+    :ivar lost: the track was lost in this cloud (and, with a pose, re-acquired at once).
     """
 
     pose: Optional[np.ndarray]
@@ -423,6 +431,7 @@ class TrackUpdate:
     reason: str
     cpu_seconds: float = 0.0
     acquired: bool = False
+    lost: bool = False
 
 
 #: Global acquisition: (model, scene points (N, 3) [m], seed) -> candidate poses (best first).
@@ -431,7 +440,34 @@ Acquirer = Callable[[TrackingModel, np.ndarray, int], list]
 
 def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int) -> list:
     """Global acquisition with ``localization.localize`` (FPFH + RANSAC, then ICP)."""
-    return [localize(model.template, points, seed=seed).pose]
+    P = np.asarray(points, dtype=float)
+    return [localize(model.template, P[np.all(np.isfinite(P), axis=1)], seed=seed).pose]
+
+
+def make_acquirer(method: str, max_candidates: int = 8,
+                  time_budget_s: float = 0.3) -> Acquirer:
+    """The global acquisition of ``object_localizer.acquisition`` (``'ppf'``: point-pair-feature
+    voting, ``'fpfh'``: FPFH + RANSAC, both with visibility verification) as an
+    :data:`Acquirer`: its best ``max_candidates`` hypotheses, refined or not, best first (the
+    tracker refines and checks each in turn); ``'rough_fine'``: :func:`acquire_rough_fine`.
+    The acquisition model is built on first use and kept on the tracking model."""
+    if method == 'rough_fine':
+        return acquire_rough_fine
+    from object_localizer import acquisition
+
+    if method not in acquisition.METHODS:
+        raise ValueError(f'acquisition method must be one of '
+                         f'{("rough_fine",) + tuple(acquisition.METHODS)}, got {method!r}')
+
+    def acquire(model: TrackingModel, points: np.ndarray, seed: int) -> list:
+        if model.acquisition is None:
+            model.acquisition = acquisition.prepare_acquisition_model(model.mesh)
+        P = np.asarray(points, dtype=float)
+        hyps = acquisition.acquire_object(model.acquisition, P[np.all(np.isfinite(P), axis=1)],
+                                          method=method, seed=seed,
+                                          time_budget_s=time_budget_s)
+        return [h.pose for h in hyps[:max_candidates]]
+    return acquire
 
 
 @dataclass
@@ -513,9 +549,13 @@ class ObjectTracker:
                 return TrackUpdate(pose, TrackState.STATIC, q, 'static: re-checked')
             return self._lose(q, f'static pose failed its re-check: {q.reason}')
         if self.state == TrackState.TRACKING and self.history:
-            prediction = predict_constant_velocity(self.model, tuple(self.history)[-2:],
-                                                   stamp_ns)
-            pose, q = self._refine_and_check(scene, prediction, prediction)
+            gap = (stamp_ns - self.history[-1][0]) * 1e-9
+            if len(self.history) >= 2 and 0.0 < gap <= s.prediction_horizon:
+                prediction = predict_constant_velocity(self.model, tuple(self.history)[-2:],
+                                                       stamp_ns)
+                pose, q = self._refine_and_check(scene, prediction, prediction)
+            else:   # no velocity yet, or too long ago to extrapolate: no prediction to check
+                pose, q = self._refine_and_check(scene, self.history[-1][1], None)
             if not q.passed and len(self.history) >= 2:
                 # a sudden stop or turn: from the last pose (no motion) before giving up
                 last = self.history[-1][1]
@@ -525,16 +565,26 @@ class ObjectTracker:
             if q.passed:
                 self._accept(stamp_ns, pose)
                 return TrackUpdate(pose, TrackState.TRACKING, q, 'tracking')
-            return self._lose(q, f'track lost: {q.reason}')
-        # ACQUIRING or LOST: a hint first (verified), else the global search from scratch
+            lost = self._lose(q, f'track lost: {q.reason}')
+            # re-acquire at once, in this cloud (the next one may be far away in time)
+            again = self._acquire(scene, stamp_ns, f'{lost.reason}; ')
+            again.lost = True
+            if again.quality is None:
+                again.quality = q       # the failed check of the tracked pose
+            return again
+        return self._acquire(scene, stamp_ns, '')
+
+    def _acquire(self, scene: SceneCloud, stamp_ns: int, prefix: str) -> TrackUpdate:
+        """A hint first (verified), else the global search from scratch."""
+        s = self.settings
         if self.hint is not None:
             hint, self.hint = self.hint, None
             pose, q = self._refine_and_check(scene, hint, None)
             if q.passed:
                 return self._start(stamp_ns, pose, q, 'initial pose verified')
-            hint_reason = f'initial pose rejected ({q.reason}); '
+            hint_reason = f'{prefix}initial pose rejected ({q.reason}); '
         else:
-            hint_reason = ''
+            hint_reason = prefix
         self.acquisitions += 1
         best: Optional[Tuple[np.ndarray, PoseQuality]] = None
         for candidate in self.acquirer(self.model, scene.points, s.seed + self.acquisitions):
@@ -560,4 +610,4 @@ class ObjectTracker:
         self.lost_count += 1
         self.history.clear()
         self.state = TrackState.LOST
-        return TrackUpdate(None, TrackState.LOST, q, reason)
+        return TrackUpdate(None, TrackState.LOST, q, reason, lost=True)

@@ -1,0 +1,313 @@
+"""Global acquisition of a known object in a scene cloud, from nothing (pure core, no ROS).
+
+API (the tracker and the node build on these; signatures are stable)::
+
+    model = prepare_acquisition_model(mesh)                  # once per object model
+    scene = prepare_acquisition_scene(points, camera=None)   # once per cloud (optional)
+    hyps = acquire_object(model, scene_or_points, scene_normals=None, camera=None,
+                          method='ppf', seed=0, time_budget_s=0.5)   # -> list[Hypothesis]
+    best = hyps[0]   # best first; best.pose (4x4 model -> optical frame), best.score (0..1)
+
+    observed = observe_depth(points, camera)                 # verification.py
+    q = score_pose_visibility(model.surface, pose, observed) # VisibilityScore, the visible-
+                                                             # surface quality for tracking too
+
+Stages (each hypothesis keeps the figures of every stage, see :class:`Hypothesis`):
+
+1. **Rough** -- ``method='ppf'`` (default): point-pair-feature voting (Drost et al. 2010,
+   :mod:`object_localizer.ppf`) over the scene without its dominant plane, sampled at 5 % of
+   the model diameter; pose clusters ranked by votes. ``method='fpfh'``: FPFH matching +
+   RANSAC (the previous rough stage, :func:`object_localizer.localization.rough_localize`)
+   run with several seeds, one hypothesis each.
+2. **Verification** -- every rough hypothesis is rendered with the camera intrinsics and
+   scored against the observed depth (:func:`~object_localizer.verification.
+   score_pose_visibility`: visible-surface inliers minus free-space violations), with a
+   tolerance matched to the rough pose accuracy.
+3. **Refinement** -- the best few go through the M-estimator point-to-plane ICP
+   (:func:`~object_localizer.localization.fine_localize`) and are verified again at the
+   stereo depth tolerance; the list is sorted by that final score.
+
+A caller decides acceptance from ``Hypothesis.score`` (and ``inlier_fraction``): a score below
+about 0.5 means the model is not seen well enough to trust the pose. Symmetric objects give
+several hypotheses equivalent under their symmetries with equal scores; any one is right.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import time
+from typing import Any, Dict, List, Optional, Union
+
+import numpy as np
+import open3d as o3d
+
+from object_localizer.localization import (crop_around, fine_localize, ModelTemplate,
+                                           prepare_model, prepare_scene, remove_dominant_plane)
+from object_localizer.ppf import build_ppf_model, cluster_poses, PPFModel, ppf_vote
+from object_localizer.verification import (as_camera, CameraLike, observe_depth, ObservedDepth,
+                                           sample_model_surface, score_pose_visibility,
+                                           SurfaceSamples, VisibilityScore)
+from stereo_manip_tools.mesh_io import PolygonMesh
+
+__all__ = [
+    'METHODS',
+    'AcquisitionModel',
+    'AcquisitionScene',
+    'Hypothesis',
+    'prepare_acquisition_model',
+    'prepare_acquisition_scene',
+    'acquire_object',
+    'score_pose_visibility',
+    'observe_depth',
+]
+
+#: Rough methods of :func:`acquire_object`.
+METHODS = ('ppf', 'fpfh')
+
+
+@dataclass
+class AcquisitionModel:
+    """Everything acquisition needs about one object model (build once, reuse per cloud).
+
+    :ivar name: model name.
+    :ivar template: samples + FPFH features at ``template.voxel_size`` (ICP and the FPFH path).
+    :ivar ppf: the point-pair-feature table (sampled at ``ppf.distance_step``).
+    :ivar surface: dense surface samples for rendering (verification).
+    :ivar centroid: (3,) surface centroid, model frame [m].
+    :ivar diameter: model diameter [m].
+    """
+
+    name: str
+    template: ModelTemplate
+    ppf: PPFModel
+    surface: SurfaceSamples
+    centroid: np.ndarray
+    diameter: float
+
+
+@dataclass
+class Hypothesis:
+    """One acquisition result (best first in :func:`acquire_object`'s list).
+
+    :ivar pose: 4x4 model -> camera optical frame (after refinement when ``refined``).
+    :ivar score: final visibility score in [0, 1] (``visibility.score``).
+    :ivar method: rough method, ``'ppf'`` or ``'fpfh'``.
+    :ivar rough_score: the rough stage's own support (PPF cluster votes; RANSAC fitness).
+    :ivar rough_visibility: visibility score of the rough pose (coarse tolerance).
+    :ivar visibility: visibility figures of the final pose (stereo tolerance).
+    :ivar inlier_fraction: ICP inlier fraction of the model's visible samples (NaN unrefined).
+    :ivar rmse: ICP inlier RMS point-to-plane residual [m] (NaN unrefined).
+    :ivar refined: whether the pose went through ICP.
+    """
+
+    pose: np.ndarray
+    score: float
+    method: str
+    rough_score: float
+    rough_visibility: float
+    visibility: Optional[VisibilityScore] = None
+    inlier_fraction: float = float('nan')
+    rmse: float = float('nan')
+    refined: bool = False
+
+
+@dataclass
+class AcquisitionScene:
+    """A scene cloud with the derived data acquisition needs, computed lazily and cached (one
+    per cloud, shared by all objects searched in it).
+
+    :ivar points: (N, 3) finite scene points [m], optical frame.
+    :ivar normals: (N, 3) given normals or None (then estimated per sampling step).
+    :ivar camera: intrinsics or None (a virtual camera is used for visibility).
+    """
+
+    points: np.ndarray
+    normals: Optional[np.ndarray] = None
+    camera: Any = None
+    _clouds: Dict[Any, o3d.geometry.PointCloud] = field(default_factory=dict, repr=False)
+    _observed: Optional[ObservedDepth] = field(default=None, repr=False)
+
+    def cloud(self, voxel: float, drop_plane: bool = False,
+              min_plane_extent: float = 0.0, seed: int = 0) -> o3d.geometry.PointCloud:
+        """The scene down-sampled at ``voxel`` [m] with normals towards the sensor, optionally
+        without its dominant plane (a table larger than ``min_plane_extent``)."""
+        key = (round(voxel, 6), drop_plane, round(min_plane_extent, 4) if drop_plane else 0)
+        if key in self._clouds:
+            return self._clouds[key]
+        if drop_plane:
+            base = self.cloud(voxel)
+            pcd = remove_dominant_plane(base, max(voxel, 0.004), min_plane_extent, seed=seed)
+        elif self.normals is not None:
+            pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
+            pcd.normals = o3d.utility.Vector3dVector(self.normals)
+            pcd = pcd.voxel_down_sample(voxel)
+            pcd.normalize_normals()
+            pcd.orient_normals_towards_camera_location(np.zeros(3))
+        else:
+            pcd = prepare_scene(self.points, voxel)
+        self._clouds[key] = pcd
+        return pcd
+
+    def observed(self) -> ObservedDepth:
+        """Observed depth image for verification (built once)."""
+        if self._observed is None:
+            self._observed = observe_depth(self.points, self.camera)
+        return self._observed
+
+
+def prepare_acquisition_model(mesh: PolygonMesh, *, ppf_relative_step: float = 0.05,
+                              icp_voxel: float = 0.003, surface_spacing: float = 0.0015,
+                              seed: int = 0) -> AcquisitionModel:
+    """Build the matching data of a model: ICP/FPFH template, PPF table, render samples.
+
+    :param ppf_relative_step: PPF sampling and distance step as a fraction of the diameter.
+    :param icp_voxel: voxel [m] of the ICP/FPFH template (:func:`prepare_model`).
+    :param surface_spacing: spacing [m] of the render samples for verification.
+    """
+    if not 0 < ppf_relative_step < 0.5:
+        raise ValueError(f'ppf_relative_step must be in (0, 0.5), got {ppf_relative_step}')
+    template = prepare_model(mesh, voxel_size=icp_voxel, seed=seed)
+    surface = sample_model_surface(mesh, surface_spacing, seed=seed)
+    centroid = surface.points.mean(axis=0)
+    diameter = 2.0 * float(np.max(np.linalg.norm(surface.points - centroid, axis=1)))
+    step = ppf_relative_step * diameter
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points))
+    pcd.normals = o3d.utility.Vector3dVector(surface.normals)
+    pcd = pcd.voxel_down_sample(step)
+    pcd.normalize_normals()
+    ppf = build_ppf_model(np.asarray(pcd.points), np.asarray(pcd.normals), step)
+    return AcquisitionModel(mesh.name, template, ppf, surface, centroid, diameter)
+
+
+def prepare_acquisition_scene(scene_points: np.ndarray, scene_normals: Optional[np.ndarray] = None,
+                              camera: CameraLike = None) -> AcquisitionScene:
+    """Wrap a scene cloud for :func:`acquire_object` (reuse it for every object of the cloud).
+
+    :param scene_points: (N, 3) or organised (H, W, 3) points [m], optical frame; non-finite
+        points are dropped (with their normals).
+    :param scene_normals: optional normals of the same shape.
+    :param camera: intrinsics (:func:`~object_localizer.verification.as_camera` forms) or None.
+    :raises ValueError: wrong shapes or fewer than 10 finite points.
+    """
+    P = np.asarray(scene_points, dtype=float)
+    if P.ndim == 3 and P.shape[2] == 3:
+        P = P.reshape(-1, 3)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f'scene points must have shape (N, 3) or (H, W, 3), got {P.shape}')
+    N = None
+    ok = np.all(np.isfinite(P), axis=1)
+    if scene_normals is not None:
+        N = np.asarray(scene_normals, dtype=float).reshape(-1, 3)
+        if N.shape != P.shape:
+            raise ValueError(f'scene normals {N.shape} do not match the points {P.shape}')
+        ok &= np.all(np.isfinite(N), axis=1)
+        N = N[ok]
+    P = P[ok]
+    if len(P) < 10:
+        raise ValueError(f'scene has only {len(P)} finite points')
+    return AcquisitionScene(P, N, as_camera(camera))
+
+
+def _rough_ppf(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
+               max_hypotheses: int) -> List[tuple]:
+    step = model.ppf.distance_step
+    search = scene.cloud(step, drop_plane=True, min_plane_extent=2.0 * model.diameter,
+                         seed=seed)
+    S, SN = np.asarray(search.points), np.asarray(search.normals)
+    poses, votes = ppf_vote(model.ppf, S, SN, reference_stride=5, seed=seed)
+    poses, scores = cluster_poses(poses, votes, model.centroid, 0.1 * model.diameter,
+                                  np.radians(20.0), max_clusters=max_hypotheses)
+    return [(T, float(s)) for T, s in zip(poses, scores)]
+
+
+def _rough_fpfh(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
+                attempts: int) -> List[tuple]:
+    reg = o3d.pipelines.registration
+    t = model.template
+    voxel = t.voxel_size
+    search = scene.cloud(voxel, drop_plane=True, min_plane_extent=2.0 * model.diameter,
+                         seed=seed)
+    feats = reg.compute_fpfh_feature(
+        search, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
+    out = []
+    for k in range(attempts):
+        o3d.utility.random.seed(seed + k)
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            res = reg.registration_ransac_based_on_feature_matching(
+                t.cloud, search, t.features, feats, True, 2.0 * voxel,
+                reg.TransformationEstimationPointToPoint(False), 3,
+                [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                 reg.CorrespondenceCheckerBasedOnDistance(2.0 * voxel)],
+                reg.RANSACConvergenceCriteria(100000, 0.999))
+        out.append((np.asarray(res.transformation).copy(), float(res.fitness)))
+    return out
+
+
+def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
+                   scene_points: Union[AcquisitionScene, np.ndarray],
+                   scene_normals: Optional[np.ndarray] = None, camera: CameraLike = None, *,
+                   method: str = 'ppf', seed: int = 0, time_budget_s: float = 0.5,
+                   max_rough: int = 20, max_refined: int = 4, fpfh_attempts: int = 4,
+                   rough_tolerance: Optional[float] = None,
+                   fine_tolerance: float = 0.004) -> List[Hypothesis]:
+    """Find ``model`` in a scene cloud with no initial pose (module doc: rough, verification,
+    refinement).
+
+    :param model: :func:`prepare_acquisition_model` output (a mesh is prepared on the fly).
+    :param scene_points: (N, 3)/(H, W, 3) points [m] in the camera optical frame, or a
+        :func:`prepare_acquisition_scene` (then ``scene_normals``/``camera`` are ignored).
+    :param scene_normals: optional normals of the points (estimated otherwise).
+    :param camera: camera intrinsics for the visibility score; None = virtual camera.
+    :param method: ``'ppf'`` or ``'fpfh'`` (rough stage).
+    :param seed: seeds the reference-point order (PPF) or RANSAC.
+    :param time_budget_s: refinement stops once this much wall time [s] is spent (at least one
+        hypothesis is refined).
+    :param max_rough: rough hypotheses verified.
+    :param max_refined: best rough hypotheses refined by ICP.
+    :param rough_tolerance: depth tolerance [m] of the rough verification (default: 1.5 x
+        the PPF step, at least 6 mm).
+    :param fine_tolerance: depth tolerance [m] of the final verification.
+    :return: hypotheses, best (highest ``score``) first; empty if the rough stage found none.
+    :raises ValueError: unknown method, unusable scene.
+    """
+    t0 = time.perf_counter()
+    if method not in METHODS:
+        raise ValueError(f'method must be one of {METHODS}, got {method!r}')
+    if isinstance(model, PolygonMesh):
+        model = prepare_acquisition_model(model)
+    scene = scene_points if isinstance(scene_points, AcquisitionScene) else \
+        prepare_acquisition_scene(scene_points, scene_normals, camera)
+    if method == 'ppf':
+        rough = _rough_ppf(model, scene, seed, max_rough)
+    else:
+        rough = _rough_fpfh(model, scene, seed, fpfh_attempts)
+    if not rough:
+        return []
+    observed = scene.observed()
+    tol = rough_tolerance if rough_tolerance is not None else \
+        max(0.006, 1.5 * model.ppf.distance_step)
+    hyps = []
+    for T, support in rough:
+        vis = score_pose_visibility(model.surface, T, observed, inlier_threshold=tol)
+        hyps.append(Hypothesis(T, vis.score, method, support, vis.score, vis))
+    hyps.sort(key=lambda h: (h.rough_visibility, h.rough_score), reverse=True)
+    fine_voxel = model.template.voxel_size / 2.0
+    refined: List[Hypothesis] = []
+    tried = 0
+    for h in hyps[:max_refined]:
+        if refined and time.perf_counter() - t0 > time_budget_s:
+            break
+        tried += 1
+        near = crop_around(scene.points, model.template, h.pose, 0.03)
+        if len(near) < 10:
+            continue
+        res = fine_localize(model.template, prepare_scene(near, fine_voxel), h.pose)
+        vis = score_pose_visibility(model.surface, res.pose, observed,
+                                    inlier_threshold=fine_tolerance)
+        refined.append(Hypothesis(res.pose, vis.score, method, h.rough_score,
+                                  h.rough_visibility, vis, res.inlier_fraction, res.rmse, True))
+    rest = hyps[tried:]
+    refined.sort(key=lambda h: (h.score, h.inlier_fraction), reverse=True)
+    for h in rest:
+        h.score = 0.0          # unrefined: not a usable pose, kept for diagnosis
+    return refined + rest
