@@ -34,9 +34,12 @@ from std_msgs.msg import Header
 from stereo_manip_msgs.msg import ContactState
 from stereo_manip_msgs.srv import CorrectTrajectory
 
+from contact_correction.contact_relation import parse_relation
 from contact_correction.conversions import contact_state_msg
 from contact_correction.correction import CorrectionResult, correct_pose
-from contact_correction.polyhedron import Polyhedron, load_polyhedron
+from contact_correction.polyhedron import Polyhedron, check_model_units, load_polyhedron
+from contact_correction.recognition import RecognitionOptions
+from contact_correction.trajectory import ContactCorrector, correct_trajectory
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_stamped_to_matrix
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
@@ -45,7 +48,28 @@ from stereo_manip_tools.parameters import bool_descriptor as _bool, \
     string_descriptor as _string
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 
-__all__ = ['ContactCorrectionNode', 'main']
+__all__ = ['ContactCorrectionNode', 'main', 'model_path_problem']
+
+_RECOGNITION_PARAMETERS = ('recognition', 'sigma_translation', 'sigma_rotation',
+                           'search_margin', 'free_dof_penalty', 'switch_cost', 'optimal',
+                           'tolerance', 'penetration_tolerance', 'angle_tolerance',
+                           'max_translation', 'max_rotation', 'check_penetration',
+                           'element_margin')
+
+
+def model_path_problem(value: str) -> str:
+    """Why a model parameter cannot be used ('' when it can): empty, or a path that exists
+    but is not a regular file (a FIFO would block the read, a directory fails it)."""
+    if not value.strip():
+        return 'must name a model or a model file'
+    from pathlib import Path
+    path = Path(value)
+    try:
+        if path.exists() and not path.is_file():
+            return f'{value} exists but is not a regular file (FIFO, device or directory)'
+    except OSError as exc:
+        return f'{value}: {exc}'
+    return ''
 
 
 def static_pose(values: List[float]) -> np.ndarray:
@@ -98,15 +122,45 @@ class ContactCorrectionNode(Node):
             'measure penetration before and after correction (refuse to output a pose that '
             'still interpenetrates)'))
         self.declare_parameter('track_length', 500, _int(
-            'poses kept in corrected_track', 1, 1000000, read_only=True))
+            'poses kept in corrected_track (built only while it has subscribers)', 1, 10000,
+            read_only=True))
+        self.declare_parameter('recognition', True, _bool(
+            'recognise the relation (model selection against the stated pose noise + temporal '
+            'model over the track); false: detect it per frame with `tolerance`'))
+        self.declare_parameter('sigma_translation', 0.002, _float(
+            'stated pose noise of the moving object relative to the fixed one, translation '
+            'per axis [m] (1 sigma)', 1e-6, 0.1))
+        self.declare_parameter('sigma_rotation', float(np.deg2rad(2.0)), _float(
+            'stated pose noise, rotation per axis [rad] (1 sigma)', 1e-6, 1.0))
+        self.declare_parameter('search_margin', 0.0, _float(
+            'margin [m] of the candidate contacts; 0: 3 (sigma_t + sigma_r size / 2)',
+            0.0, 0.2))
+        self.declare_parameter('free_dof_penalty', 3.0, _float(
+            'recognition score cost per degree of freedom a relation leaves free', 0.0, 100.0))
+        self.declare_parameter('switch_cost', 20.0, _float(
+            'temporal model: score cost per contact switched on or off between frames',
+            0.0, 1000.0))
+        self.declare_parameter('element_margin', 1e-6, _float(
+            'largest distance [m] of a corrected contact point outside its element (given / '
+            'detected relations; recognised ones use the search margin)', 0.0, 0.05))
+        self.declare_parameter('relation', '', _string(
+            "explicit contact relation, e.g. 'vertex 0 - face 4; face 2 - vertex 15; edge 3 - "
+            "edge 7'; empty: recognised / detected"))
 
         g = self.get_parameter
         self.moving: Polyhedron | None = None
         self.fixed: Polyhedron | None = None
         self.model_error = ''
         try:
+            for name in ('moving_object', 'fixed_object'):
+                reason = model_path_problem(str(g(name).value))
+                if reason:
+                    raise ValueError(f'{name} refused: {reason}')
             self.moving = load_polyhedron(g('moving_object').value)
             self.fixed = load_polyhedron(g('fixed_object').value)
+            for poly in (self.moving, self.fixed):
+                for w in check_model_units(poly):
+                    self.get_logger().warning(w)
         except (ValueError, FileNotFoundError, OSError) as exc:
             self.model_error = f'models unusable: {exc}'
             self.get_logger().error(f'{self.model_error}; every pose will be passed through')
@@ -120,6 +174,8 @@ class ContactCorrectionNode(Node):
         self.counts: Dict[str, int] = {'received': 0, 'rejected': 0, 'no_fixed_pose': 0,
                                        'corrected': 0, 'passed_through': 0}
         self.track: deque = deque(maxlen=int(g('track_length').value))
+        self.corrector: ContactCorrector | None = None
+        self._last_stamp: int | None = None
         self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
         self.state_pub = self.create_publisher(ContactState, 'contact_state', 10)
         self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
@@ -146,11 +202,23 @@ class ContactCorrectionNode(Node):
             return []
 
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
-        """Checks beyond the descriptors' ranges."""
+        """Checks beyond the descriptors' ranges: finite numbers, model paths that are
+        regular files (a FIFO or a directory would block or fail the read), a parsable
+        relation."""
         for p in params:
+            if p.type_ == Parameter.Type.DOUBLE and not np.isfinite(p.value):
+                return SetParametersResult(successful=False,
+                                           reason=f'{p.name} must be finite, got {p.value}')
             if p.name in ('moving_object', 'fixed_object') and not str(p.value).strip():
                 return SetParametersResult(successful=False,
                                            reason=f'{p.name} must name a model')
+            if p.name == 'relation' and str(p.value).strip():
+                try:
+                    parse_relation(str(p.value))
+                except ValueError as exc:
+                    return SetParametersResult(successful=False, reason=str(exc))
+            if p.name in _RECOGNITION_PARAMETERS:
+                self.corrector = None          # rebuilt with the new values
             if p.name == 'fixed_pose_static' and p.value:
                 try:
                     static_pose(list(p.value))
@@ -165,16 +233,47 @@ class ContactCorrectionNode(Node):
                     angle_tolerance=g('angle_tolerance').value,
                     max_translation=g('max_translation').value,
                     max_rotation=g('max_rotation').value,
-                    check_penetration=g('check_penetration').value)
+                    check_penetration=g('check_penetration').value,
+                    element_margin=g('element_margin').value)
+
+    def _recognition(self) -> RecognitionOptions | None:
+        g = self.get_parameter
+        if not g('recognition').value:
+            return None
+        margin = g('search_margin').value
+        return RecognitionOptions(
+            sigma_translation=g('sigma_translation').value,
+            sigma_rotation=g('sigma_rotation').value,
+            search_margin=margin if margin > 0 else None,
+            free_dof_penalty=g('free_dof_penalty').value,
+            switch_cost=g('switch_cost').value)
+
+    def _relation(self):
+        text = str(self.get_parameter('relation').value).strip()
+        return parse_relation(text) if text else None
 
     def _fixed_frame(self) -> str:
         return self.get_parameter('fixed_frame').value or self.get_parameter('fixed_object').value
 
-    def _correct(self, T_moving: np.ndarray, T_fixed: np.ndarray, **overrides) -> CorrectionResult:
+    def _correct(self, T_moving: np.ndarray, T_fixed: np.ndarray, stamp: int = 0
+                 ) -> CorrectionResult:
         if self.moving is None or self.fixed is None or self.model_error:
             return CorrectionResult(T_moving=T_moving, status=self.model_error)
-        return correct_pose(self.moving, self.fixed, T_moving, T_fixed,
-                            **{**self._options(), **overrides})
+        relation = self._relation()
+        recognition = self._recognition()
+        if relation is not None or recognition is None:
+            r = correct_pose(self.moving, self.fixed, T_moving, T_fixed, relation,
+                             **self._options())
+            r.relation_source = 'given' if relation is not None else 'detected'
+            return r
+        if self.corrector is None:
+            self.corrector = ContactCorrector(self.moving, self.fixed, recognition,
+                                              **self._options())
+        if self._last_stamp is not None and stamp < self._last_stamp:
+            self.get_logger().info('moving_pose stamp went back: contact states reset')
+            self.corrector.reset()
+        self._last_stamp = stamp
+        return self.corrector.update(T_moving, T_fixed)
 
     # --- streaming input ------------------------------------------------------------------
 
@@ -205,20 +304,24 @@ class ContactCorrectionNode(Node):
         if self.fixed_T is None:
             self._reject('moving_pose', 'no fixed_pose received yet', 'no_fixed_pose')
             return
-        result = self._correct(T, self.fixed_T)
+        result = self._correct(T, self.fixed_T, stamp)
         self.counts['corrected' if result.corrected else 'passed_through'] += 1
         if not result.corrected:
             self.get_logger().debug(f'pose passed through: {result.status}')
         self.pose_pub.publish(PoseStamped(header=header, pose=matrix_to_pose(result.T_moving)))
-        state = contact_state_msg(result, Header(stamp=header.stamp, frame_id=self._fixed_frame()),
-                                  self.get_parameter('moving_object').value,
-                                  self.get_parameter('fixed_object').value)
-        state.status = f'{state.status}; {self._summary()}'
-        self.state_pub.publish(state)
-        self.track.append((stamp, result.T_moving))
-        stamps = [s for s, _ in self.track]
-        self.track_pub.publish(matrices_to_path(np.array([M for _, M in self.track]), frame,
-                                                stamps))
+        # the per-frame extras are built only while someone listens
+        if self.state_pub.get_subscription_count() > 0:
+            state = contact_state_msg(
+                result, Header(stamp=header.stamp, frame_id=self._fixed_frame()),
+                self.get_parameter('moving_object').value,
+                self.get_parameter('fixed_object').value)
+            state.status = f'{state.status}; {self._summary()}'
+            self.state_pub.publish(state)
+        self.track.append((stamp, result.T_moving))      # bounded (track_length)
+        if self.track_pub.get_subscription_count() > 0:
+            stamps = [s for s, _ in self.track]
+            self.track_pub.publish(matrices_to_path(np.array([M for _, M in self.track]),
+                                                    frame, stamps))
 
     # --- service --------------------------------------------------------------------------
 
@@ -247,8 +350,17 @@ class ContactCorrectionNode(Node):
         frame = request.moving_track.header.frame_id or (
             request.moving_track.poses[0].header.frame_id if request.moving_track.poses else '')
         out = []
-        for k in range(len(T_m)):
-            r = correct_pose(moving, fixed, T_m[k], T_f[k], **opts)
+        try:
+            relation = self._relation()
+            results = correct_trajectory(
+                moving, fixed, T_m, T_f,
+                relations=[relation] * len(T_m) if relation is not None else None,
+                recognition=self._recognition(), **opts)
+        except ValueError as exc:
+            response.success = False
+            response.message = str(exc)
+            return response
+        for k, r in enumerate(results):
             out.append(r.T_moving)
             response.states.append(contact_state_msg(
                 r, Header(stamp=ns_to_stamp(int(stamps[k])), frame_id=self._fixed_frame()),

@@ -40,6 +40,7 @@ __all__ = [
     'off_element_distance',
     'relative_pose',
     'pair_key',
+    'parse_relation',
 ]
 
 VERTEX = 0
@@ -74,6 +75,43 @@ class ContactPair:
     def __str__(self) -> str:
         return (f'{_TYPE_NAME[self.moving_type]} {self.moving_index} - '
                 f'{_TYPE_NAME[self.fixed_type]} {self.fixed_index}')
+
+
+_TYPE_CODE = {'vertex': VERTEX, 'edge': EDGE, 'face': FACE}
+
+
+def parse_relation(text: str) -> List[ContactPair]:
+    """Contact relation from text: pairs separated by ';' or new lines, each written as
+    :class:`ContactPair` prints it, ``'vertex 3 - face 1'``, ``'face 2 - vertex 7'`` or
+    ``'edge 4 - edge 9'`` (moving element first; edge-edge may end with ``' -'`` for the
+    negative sign).
+
+    :raises ValueError: naming the malformed entry.
+    """
+    pairs: List[ContactPair] = []
+    for item in text.replace('\n', ';').split(';'):
+        item = item.strip()
+        if not item:
+            continue
+        sign = 1
+        if item.endswith(' -'):
+            sign, item = -1, item[:-2].strip()
+        parts = [p.split() for p in item.split('-')]
+        if len(parts) != 2 or any(len(p) != 2 for p in parts):
+            raise ValueError(f"relation entry {item!r}: expected '<type> <index> - <type> "
+                             "<index>', e.g. 'vertex 3 - face 1'")
+        try:
+            (mt, mi), (ft, fi) = [(_TYPE_CODE[t.lower()], int(i)) for t, i in parts]
+        except (KeyError, ValueError):
+            raise ValueError(f'relation entry {item!r}: types are vertex, edge, face and '
+                             'indices integers') from None
+        if (mt, ft) not in ((VERTEX, FACE), (FACE, VERTEX), (EDGE, EDGE)):
+            raise ValueError(f'relation entry {item!r}: use vertex-face, face-vertex or '
+                             'edge-edge')
+        if mi < 0 or fi < 0:
+            raise ValueError(f'relation entry {item!r}: negative index')
+        pairs.append(ContactPair(mt, mi, ft, fi, sign))
+    return pairs
 
 
 def pair_key(pair: ContactPair) -> Tuple[int, int, int, int]:

@@ -248,6 +248,22 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
             pairs=pairs, directions=dirs, penetration_before=pen_before, T_nonlinear=T_nl)
     pen_after = (penetration_depth(moving, fixed, T_out, Tf, penetration_spacing)
                  if check_penetration else float('nan'))
+    if check_penetration and pen_after > max(residual_tolerance, 1e-6) \
+            and method != 'nonlinear':
+        # the optimal step's rotation may dip an element outside the relation into the other
+        # object; the non-linear result (any feasible pose near the observation) may not
+        pen_nl = penetration_depth(moving, fixed, T_nl, Tf, penetration_spacing)
+        if pen_nl <= max(residual_tolerance, 1e-6):
+            A_nl, geom_nl = constraint_matrix(moving, fixed, nl.T_rel, pairs)
+            off_nl = off_element_distance(moving, fixed, nl.T_rel, pairs)
+            if not _near_degenerate(A_nl, L) and off_nl.max(initial=0.0) <= element_margin:
+                T_rel, T_out, A, geom, pen_after = nl.T_rel, T_nl, A_nl, geom_nl, pen_nl
+                dirs = constraint_directions(A, L)
+                dt = T_rel[:3, 3] - T_rel_E[:3, 3]
+                dr = rotation_log(T_rel[:3, :3] @ T_rel_E[:3, :3].T)
+                status = (f'non-linear correction ({method} left penetration '
+                          f'{pen_after:.3g} m)')
+                method = 'nonlinear'
     if check_penetration and pen_after > max(residual_tolerance, 1e-6):
         return passthrough(
             f'penetration {pen_after:.3g} m remains after {method} correction (relation '

@@ -12,16 +12,22 @@ Input, either
     (geometry_msgs/PoseStamped, or nav_msgs/Path whose last message is used) and optionally the
     fixed object's on ``--fixed-topic`` (the newest one before each moving pose is used).
 
-Output: a CSV (``--output``) with header::
+Relations: recognised by default (model selection against the stated pose noise
+``--sigma-translation`` / ``--sigma-rotation-deg`` and a Viterbi temporal model over the
+track, :mod:`contact_correction.recognition`); ``--relation`` gives it explicitly (the same
+for every frame); ``--per-frame-detection`` detects it per frame with ``--tolerance`` (the
+first version's behaviour).
+
+Output: a CSV (``--output``), plain header on the first line::
 
     stamp_ns,x,y,z,qx,qy,qz,qw,corrected,method,rotation_rank,constraint_rank,pairs,
-    penetration_observed_m,max_residual_m,dx,dy,dz,status
+    penetration_observed_m,penetration_after_m,max_residual_m,dx,dy,dz,relation_source,status
 
-(corrected pose; ``dx, dy, dz`` = change of the moving origin in the fixed object's frame [m]),
-and with ``--figure`` a PNG like the chapter's Fig. 9: the observed trajectory and its
-corrections by the non-linear step only and by non-linear + optimal, projected onto the
-constrained and free translation directions, and onto the plane of the first two fixed-frame
-axes.
+(corrected pose in the input frame, metres, quaternion x y z w; ``dx, dy, dz`` = change of the
+moving origin in the fixed object's frame [m]), and with ``--figure`` a PNG like the chapter's
+Fig. 9: the observed and corrected trajectories, the correction along each frame's own
+constrained and free directions (non-linear step only and non-linear + optimal; frames passed
+through are marked), and the relation's rank per frame.
 """
 
 from __future__ import annotations
@@ -37,8 +43,11 @@ import numpy as np
 from stereo_manip_tools.transforms import (
     make_transform, matrix_from_quaternion, quaternion_from_matrix)
 
+from .contact_relation import parse_relation, relative_pose
 from .correction import CorrectionResult
-from .polyhedron import load_polyhedron
+from .nonlinear_correction import RESIDUAL_TOLERANCE
+from .polyhedron import check_model_units, load_polyhedron
+from .recognition import RecognitionOptions
 from .trajectory import correct_trajectory
 
 __all__ = ['read_csv', 'write_csv', 'read_bag_poses', 'plot_fig9', 'main']
@@ -46,8 +55,8 @@ __all__ = ['read_csv', 'write_csv', 'read_bag_poses', 'plot_fig9', 'main']
 POSE_COLUMNS = ['x', 'y', 'z', 'qx', 'qy', 'qz', 'qw']
 FIXED_COLUMNS = ['fixed_' + c for c in POSE_COLUMNS]
 OUTPUT_COLUMNS = ['stamp_ns', *POSE_COLUMNS, 'corrected', 'method', 'rotation_rank',
-                  'constraint_rank', 'pairs', 'penetration_observed_m', 'max_residual_m',
-                  'dx', 'dy', 'dz', 'status']
+                  'constraint_rank', 'pairs', 'penetration_observed_m', 'penetration_after_m',
+                  'max_residual_m', 'dx', 'dy', 'dz', 'relation_source', 'status']
 
 
 def _pose(values: Sequence[float]) -> np.ndarray:
@@ -142,8 +151,6 @@ def read_bag_poses(path: Path, moving_topic: str, fixed_topic: Optional[str]
 def write_csv(path: Path, stamps: np.ndarray, results: Sequence[CorrectionResult]) -> None:
     """Write the corrected trajectory (header ``OUTPUT_COLUMNS``)."""
     with open(path, 'w', newline='', encoding='utf-8') as fh:
-        fh.write('# corrected trajectory (contact_correction); poses in the input frame, metres, '
-                 'quaternion x y z w; dx dy dz: change in the fixed object frame [m]\n')
         w = csv.writer(fh)
         w.writerow(OUTPUT_COLUMNS)
         for s, r in zip(stamps, results):
@@ -151,65 +158,91 @@ def write_csv(path: Path, stamps: np.ndarray, results: Sequence[CorrectionResult
             pose = _row(T) if np.all(np.isfinite(T)) else [float('nan')] * 7
             w.writerow([int(s), *[f'{v:.9g}' for v in pose], int(r.corrected), r.method,
                         r.rotation_rank, r.constraint_rank, len(r.pairs),
-                        f'{r.penetration_before:.6g}', f'{r.max_residual:.6g}',
-                        *[f'{v:.9g}' for v in r.translation_change], r.status])
+                        f'{r.penetration_before:.6g}', f'{r.penetration_after:.6g}',
+                        f'{r.max_residual:.6g}',
+                        *[f'{v:.9g}' for v in r.translation_change], r.relation_source,
+                        r.status])
 
 
 def plot_fig9(path: Path, stamps: np.ndarray, observed: np.ndarray, fixed: np.ndarray,
               nonlinear: Sequence[CorrectionResult], optimal: Sequence[CorrectionResult]
               ) -> None:
-    """Fig. 9-like figure: trajectories before / after both corrections."""
+    """Fig. 9-like figure of a corrected track.
+
+    Each frame's correction is split along the constrained and free translation directions of
+    *that frame's own* relation (the relation changes along a track: sliding, inserted, pulled
+    out), for the non-linear step only and for non-linear + optimal; the optimal correction
+    along the free directions is zero. Frames passed through are marked on every panel.
+    """
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
     def origin_in_fixed(Ts: Sequence[np.ndarray]) -> np.ndarray:
-        return np.array([np.linalg.solve(F, T)[:3, 3] if np.all(np.isfinite(T)) else
+        return np.array([relative_pose(T, F)[:3, 3] if np.all(np.isfinite(T)) else
                          np.full(3, np.nan) for F, T in zip(fixed, Ts)])
 
     obs = origin_in_fixed(observed)
     nl = origin_in_fixed([r.T_moving for r in nonlinear])
     op = origin_in_fixed([r.T_moving for r in optimal])
-    # axes: constrained / free translation directions of the corrected frame with the most
-    # free directions (the latest such frame), e.g. sliding along the hole during insertion
-    axes, labels = np.eye(3), ['x', 'y', 'z']
-    cands = [r for r in optimal if r.corrected and r.directions is not None]
-    if cands:
-        d = max(reversed(cands), key=lambda r: len(r.directions.free_translation)).directions
-        axes = np.vstack([d.constrained_translation, d.free_translation])
-        labels = ([f'constrained {i + 1}' for i in range(len(d.constrained_translation))]
-                  + [f'free {i + 1}' for i in range(len(d.free_translation))])
-    t = (stamps - stamps[0]) * 1e-9 if len(stamps) else stamps
+    n = len(obs)
+    con = {'nl': np.full(n, np.nan), 'op': np.full(n, np.nan)}
+    free = {'nl': np.full(n, np.nan), 'op': np.full(n, np.nan)}
+    for k, r in enumerate(optimal):
+        d = r.directions
+        if not r.corrected or d is None:
+            continue
+        for key, pos in (('nl', nl), ('op', op)):
+            delta = pos[k] - obs[k]
+            if len(d.constrained_translation):
+                con[key][k] = np.linalg.norm(d.constrained_translation @ delta) * 1e3
+            free[key][k] = (np.linalg.norm(d.free_translation @ delta) * 1e3
+                            if len(d.free_translation) else 0.0)
+    passed = np.array([not r.corrected for r in optimal], dtype=bool)
+    t = (stamps - stamps[0]) * 1e-9 if len(stamps) else np.zeros(0)
+
+    def mark(a) -> None:
+        if np.any(passed):
+            a.plot(t[passed], np.zeros(np.count_nonzero(passed)), 'x', color='0.4', ms=5,
+                   label='passed through')
+
     fig, ax = plt.subplots(2, 2, figsize=(11, 8))
-    free_k = [k for k, lab in enumerate(labels) if lab.startswith('free')]
-    con_k = [k for k, lab in enumerate(labels) if lab.startswith('constrained')]
-    panels = [(ax[0, 0], con_k[:1] or [0], 'constrained direction'),
-              (ax[0, 1], free_k[:1] or [2], 'free direction')]
-    for a, ks, title in panels:
-        k = ks[0]
-        a.plot(t, obs @ axes[k] * 1e3, 'k.', ms=3, label='observed')
-        a.plot(t, nl @ axes[k] * 1e3, 'r-', lw=2, alpha=0.6, label='non-linear only')
-        a.plot(t, op @ axes[k] * 1e3, 'b--', lw=1, label='non-linear + optimal')
-        a.set_title(f'{title}: {labels[k]} {np.round(axes[k], 3).tolist()}')
-        a.set_xlabel('time [s]')
-        a.set_ylabel('position [mm]')
-        a.legend(fontsize=8)
+    a = ax[0, 0]
+    a.plot(t, con['nl'], 'r.-', lw=1, alpha=0.6, label='non-linear only')
+    a.plot(t, con['op'], 'b.--', lw=1, label='non-linear + optimal')
+    mark(a)
+    a.set_title("|correction| along each frame's constrained translations")
+    a.set_xlabel('time [s]')
+    a.set_ylabel('[mm]')
+    a.legend(fontsize=8)
+    a = ax[0, 1]
+    a.plot(t, free['nl'], 'r.-', lw=1, alpha=0.6, label='non-linear only')
+    a.plot(t, free['op'], 'b.--', lw=1, label='non-linear + optimal (0)')
+    mark(a)
+    a.set_title("|change| along each frame's free translations")
+    a.set_xlabel('time [s]')
+    a.set_ylabel('[mm]')
+    a.legend(fontsize=8)
     a = ax[1, 0]
     a.plot(obs[:, 0] * 1e3, obs[:, 1] * 1e3, 'k.', ms=3, label='observed')
     a.plot(op[:, 0] * 1e3, op[:, 1] * 1e3, 'b-', lw=1, label='non-linear + optimal')
+    if np.any(passed):
+        a.plot(obs[passed, 0] * 1e3, obs[passed, 1] * 1e3, 'x', color='0.4', ms=5,
+               label='passed through')
     a.set_xlabel('x (fixed frame) [mm]')
     a.set_ylabel('y (fixed frame) [mm]')
     a.set_aspect('equal', adjustable='datalim')
     a.set_title('trajectory projected on the xy-plane')
     a.legend(fontsize=8)
     a = ax[1, 1]
-    for k in free_k or [2]:
-        a.plot(t, (nl - obs) @ axes[k] * 1e3, 'r-', lw=2, alpha=0.6,
-               label=f'non-linear, {labels[k]}')
-        a.plot(t, (op - obs) @ axes[k] * 1e3, 'b--', lw=1, label=f'optimal, {labels[k]}')
-    a.set_title('correction along the free direction(s) of the frames in contact')
+    a.step(t, [r.constraint_rank for r in optimal], 'b-', where='mid',
+           label='constraint rank (Eq. 2)')
+    a.step(t, [r.rotation_rank for r in optimal], 'g--', where='mid',
+           label='rotation rank (Eq. 3)')
+    mark(a)
+    a.set_ylim(-0.5, 6.5)
+    a.set_title("each frame's relation")
     a.set_xlabel('time [s]')
-    a.set_ylabel('change [mm]')
     a.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -217,34 +250,103 @@ def plot_fig9(path: Path, stamps: np.ndarray, observed: np.ndarray, fixed: np.nd
 
 
 def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
+    """Command-line options (defaults shown by ``--help``)."""
     ap = argparse.ArgumentParser(
         prog='correct_trajectory',
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description='Correct a recorded moving-object trajectory with contact relations '
-                    '(chapter Section 3) and write the corrected CSV (+ a Fig. 9-like plot).')
+                    '(chapter Section 3) and write the corrected CSV (+ a Fig. 9-like plot). '
+                    'Poses and models in metres.')
     ap.add_argument('input', type=Path, help='trajectory CSV or rosbag2 bag directory')
     ap.add_argument('-o', '--output', type=Path, required=True, help='corrected CSV to write')
-    ap.add_argument('--moving', default='peg', help='moving object model name or file')
-    ap.add_argument('--fixed', default='hole_block', help='fixed object model name or file')
+    ap.add_argument('--moving', default=None,
+                    help='moving object model name or file (not given: the shipped peg, '
+                         'with a notice)')
+    ap.add_argument('--fixed', default=None,
+                    help='fixed object model name or file (not given: the shipped '
+                         'hole_block, with a notice)')
     ap.add_argument('--fixed-pose', type=float, nargs=7, metavar='V',
                     help='fixed object pose x y z qx qy qz qw when the input has none '
-                         '(default: identity)')
+                         '(not given: identity)')
     ap.add_argument('--moving-topic', default='moving_pose', help='bag topic of moving poses')
     ap.add_argument('--fixed-topic', default=None, help='bag topic of fixed poses (optional)')
-    ap.add_argument('--tolerance', type=float, default=0.002, help='contact distance [m]')
-    ap.add_argument('--penetration-tolerance', type=float, default=None,
-                    help='deepest penetration counted as contact [m] (default: tolerance)')
+    g = ap.add_argument_group('relation')
+    g.add_argument('--relation', default=None,
+                   help="explicit relation for every frame, e.g. 'vertex 0 - face 4; face 2 - "
+                        "vertex 15' (element indices of the loaded models)")
+    g.add_argument('--per-frame-detection', action='store_true',
+                   help='detect the relation per frame with --tolerance (no model selection, '
+                        'no temporal model)')
+    g.add_argument('--online', action='store_true',
+                   help='temporal model causal (as the node) instead of back-tracking the '
+                        'whole track')
+    g.add_argument('--sigma-translation', type=float, default=0.002,
+                   help='stated pose noise, translation per axis [m]')
+    g.add_argument('--sigma-rotation-deg', type=float, default=2.0,
+                   help='stated pose noise, rotation per axis [deg]')
+    g.add_argument('--search-margin', type=float, default=None,
+                   help='candidate contact margin [m] (not given: 3 (sigma_t + sigma_r '
+                        'size / 2))')
+    g.add_argument('--free-dof-penalty', type=float, default=3.0,
+                   help='recognition score cost per degree of freedom left free')
+    g.add_argument('--switch-cost', type=float, default=20.0,
+                   help='temporal model cost per contact switched on or off')
+    g.add_argument('--tolerance', type=float, default=0.002,
+                   help='contact distance of --per-frame-detection [m]')
+    g.add_argument('--penetration-tolerance', type=float, default=None,
+                   help='deepest penetration counted as contact by --per-frame-detection [m] '
+                        '(not given: tolerance)')
+    c = ap.add_argument_group('correction limits')
+    c.add_argument('--element-margin', type=float, default=1e-6,
+                   help='largest distance of a corrected contact point outside its element '
+                        '[m] (recognised relations: at least the search margin)')
+    c.add_argument('--max-translation', type=float, default=0.02,
+                   help='largest accepted correction of the moving origin [m]')
+    c.add_argument('--max-rotation-deg', type=float, default=20.0,
+                   help='largest accepted orientation correction [deg]')
+    c.add_argument('--residual-tolerance', type=float, default=RESIDUAL_TOLERANCE,
+                   help='contact residual accepted after correction [m]')
     ap.add_argument('--nonlinear-only', action='store_true',
                     help='skip the optimal linear correction')
     ap.add_argument('--figure', type=Path, default=None, help='write a Fig. 9-like PNG')
-    return ap.parse_args(argv)
+    args = ap.parse_args(argv)
+    for name in ('sigma_translation', 'sigma_rotation_deg', 'search_margin', 'free_dof_penalty',
+                 'switch_cost', 'tolerance', 'penetration_tolerance', 'element_margin',
+                 'max_translation', 'max_rotation_deg', 'residual_tolerance'):
+        v = getattr(args, name)
+        if v is not None and (not np.isfinite(v) or v < 0):
+            ap.error(f'--{name.replace("_", "-")} must be a finite number >= 0, got {v}')
+    if args.sigma_translation <= 0 or args.sigma_rotation_deg <= 0:
+        ap.error('--sigma-translation and --sigma-rotation-deg must be > 0')
+    return args
+
+
+def _check_poses(Tm: np.ndarray, Tf: np.ndarray, size: float) -> List[str]:
+    """Warnings on poses implausible for metres (relative distances of hundreds of model
+    sizes, e.g. millimetre poses with metre models)."""
+    rel = [np.linalg.norm(relative_pose(a, b)[:3, 3]) for a, b in zip(Tm, Tf)
+           if np.all(np.isfinite(a)) and np.all(np.isfinite(b))]
+    if rel and np.median(rel) > 100.0 * max(size, 1e-3):
+        return [f'the moving object is {np.median(rel):.4g} m (median) from the fixed one, '
+                f'{np.median(rel) / size:.0f}x its size: poses in millimetres?']
+    return []
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point; returns the process exit code (0 ok, 2 bad input)."""
     args = parse_args(argv)
+    for opt, default in (('moving', 'peg'), ('fixed', 'hole_block')):
+        if getattr(args, opt) is None:
+            print(f'correct_trajectory: notice: no --{opt} given; using the shipped model '
+                  f'{default!r}', file=sys.stderr)
+            setattr(args, opt, default)
     try:
         moving = load_polyhedron(args.moving)
         fixed = load_polyhedron(args.fixed)
+        for poly in (moving, fixed):
+            for w in check_model_units(poly):
+                print(f'correct_trajectory: warning: {w}', file=sys.stderr)
+        relation = parse_relation(args.relation) if args.relation else None
         if args.input.is_dir():
             stamps, Tm, Tf = read_bag_poses(args.input, args.moving_topic, args.fixed_topic)
         else:
@@ -255,9 +357,26 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if Tf is None:
         Tf = np.broadcast_to(_pose(args.fixed_pose) if args.fixed_pose else np.eye(4),
                              Tm.shape).copy()
-    opts = dict(tolerance=args.tolerance, penetration_tolerance=args.penetration_tolerance)
-    results = correct_trajectory(moving, fixed, Tm, Tf, optimal=not args.nonlinear_only,
-                                 **opts)
+    for w in _check_poses(Tm, Tf, moving.size):
+        print(f'correct_trajectory: warning: {w}', file=sys.stderr)
+    opts = dict(tolerance=args.tolerance, penetration_tolerance=args.penetration_tolerance,
+                element_margin=args.element_margin, max_translation=args.max_translation,
+                max_rotation=float(np.deg2rad(args.max_rotation_deg)),
+                residual_tolerance=args.residual_tolerance)
+    recognition = None if (args.per_frame_detection or relation is not None) else \
+        RecognitionOptions(sigma_translation=args.sigma_translation,
+                           sigma_rotation=float(np.deg2rad(args.sigma_rotation_deg)),
+                           search_margin=args.search_margin,
+                           free_dof_penalty=args.free_dof_penalty,
+                           switch_cost=args.switch_cost)
+    relations = [relation] * len(Tm) if relation is not None else None
+    try:
+        results = correct_trajectory(moving, fixed, Tm, Tf, relations=relations,
+                                     recognition=recognition, smooth=not args.online,
+                                     optimal=not args.nonlinear_only, **opts)
+    except ValueError as exc:
+        print(f'correct_trajectory: error: {exc}', file=sys.stderr)
+        return 2
     write_csv(args.output, stamps, results)
     n_ok = sum(r.corrected for r in results)
     print(f'correct_trajectory: {n_ok} of {len(results)} frames corrected -> {args.output}')
@@ -265,8 +384,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if not r.corrected and 'no contact' not in r.status:
             print(f'  frame {k}: {r.status}', file=sys.stderr)
     if args.figure is not None:
+        # the non-linear step alone, with the same relations
+        nl_rel = [list(r.pairs) if r.corrected else None for r in results]
         nl = results if args.nonlinear_only else correct_trajectory(
-            moving, fixed, Tm, Tf, optimal=False, **opts)
+            moving, fixed, Tm, Tf, relations=[p if p else [] for p in nl_rel], optimal=False,
+            **dict(opts, element_margin=max(args.element_margin, 0.02)))
         plot_fig9(args.figure, stamps, list(Tm), list(Tf), nl, results)
         print(f'correct_trajectory: figure -> {args.figure}')
     return 0

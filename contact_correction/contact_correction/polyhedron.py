@@ -36,6 +36,7 @@ __all__ = [
     'min_triangle_distance',
     'cross3',
     'winding_number',
+    'check_model_units',
 ]
 
 
@@ -507,6 +508,9 @@ def load_polyhedron(source: os.PathLike | str | PolygonMesh,
     if isinstance(source, PolygonMesh):
         return polyhedron_from_mesh(source)
     path = Path(source)
+    if path.exists() and not path.is_file():
+        raise ValueError(f'model {path} is not a regular file (FIFO, device or directory); '
+                         'refusing to read it')
     if not path.suffix and not path.is_file():
         path = find_model(str(source), directories)
     suffix = path.suffix.lower()
@@ -525,3 +529,21 @@ def load_polyhedron(source: os.PathLike | str | PolygonMesh,
             raise ValueError(f'{path}: no triangles read')
         return polyhedron_from_mesh(PolygonMesh(V, list(F), path.stem))
     raise ValueError(f'{path}: unsupported model format {suffix!r} (use .obj, .ply or .stl)')
+
+
+def check_model_units(poly: Polyhedron, low: float = 0.005, high: float = 2.0,
+                      refuse: float = 10.0) -> List[str]:
+    """Plausibility of a model's size for metres (REP 103).
+
+    :returns: warnings (size below ``low`` or above ``high`` metres across).
+    :raises ValueError: above ``refuse`` metres across (a model in millimetres is 1000x).
+    """
+    size = poly.size
+    if not np.isfinite(size) or size > refuse:
+        raise ValueError(f'model {poly.name!r} is {size:.4g} m across: implausible for metres '
+                         '(a model in millimetres? scale it by 0.001)')
+    out = []
+    if size > high or size < low:
+        out.append(f'model {poly.name!r} is {size:.4g} m across: check that its units are '
+                   'metres')
+    return out

@@ -253,10 +253,20 @@ class RelationRecognizer:
             self._d = g.distances
             self._guard = self._guarded(T_rel, pool, g.distances)
             self._P = self._A[:, :, None] * self._A[:, None, :]
+            # rank rows: in a face-face group every pair constrains along the fixed face's
+            # normal (the moving face's normal, tilted by the pose error, would add a spurious
+            # weak constraint within the face's plane)
+            Nc = g.normals.copy()
+            for key, idx in fc.groups.items():
+                if key[0] == 'ff':
+                    Nc[idx] = self.fixed.face_normals[key[2]]
+            Ac = np.hstack([cross3(g.points - c, Nc), Nc]) * self._w
+            Pc = Ac[:, :, None] * Ac[:, None, :]
             self._gsum = {}
             for key, idx in fc.groups.items():
                 Ai, di = self._A[idx], self._d[idx]
-                self._gsum[key] = (self._P[idx].sum(0), Ai.T @ di, float(di @ di))
+                self._gsum[key] = (self._P[idx].sum(0), Ai.T @ di, float(di @ di),
+                                   Pc[idx].sum(0))
         else:
             self._A = np.zeros((0, 6))
             self._d = np.zeros(0)
@@ -268,7 +278,7 @@ class RelationRecognizer:
             h = self.evaluate(frozenset(s))
             if h is not None:
                 starts.append(h)
-        for h in sorted(starts, key=lambda h: h.score)[:3]:
+        for h in sorted(starts, key=lambda h: h.score)[:1]:
             self._climb(h)
         fc.best = min(fc.hypotheses.values(), key=lambda h: h.score)
         return fc
@@ -339,12 +349,14 @@ class RelationRecognizer:
         N = np.zeros((6, 6))
         b = np.zeros(6)
         dd = 0.0
+        Nc = np.zeros((6, 6))
         for k in state:
-            gN, gb, gdd = self._gsum[k]
+            gN, gb, gdd, gNc = self._gsum[k]
             N += gN
             b += gb
             dd += gdd
-        w = np.linalg.eigvalsh(N)
+            Nc += gNc
+        w = np.linalg.eigvalsh(Nc)
         rank = int(np.count_nonzero(w > 1e-4 * max(w[-1], 1e-300))) if state else 0
         active = mask.copy()
         pushed = 0

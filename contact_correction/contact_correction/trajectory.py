@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
-from .contact_relation import ContactPair, penetration_depth
+from .contact_relation import ContactPair, evaluate_contacts, penetration_depth, relative_pose
 from .correction import CorrectionResult, correct_pose
 from .polyhedron import Polyhedron
 from .recognition import (
@@ -39,7 +39,7 @@ MAX_FALLBACKS = 3
 def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                        T_fixed: np.ndarray, chosen: Hypothesis, frame: FrameCandidates,
                        guard: Optional[np.ndarray] = None,
-                       element_margin: Optional[float] = None,
+                       recognition_margin: Optional[float] = None,
                        **kwargs: Any) -> CorrectionResult:
     """Correct one frame with a recognised relation, falling back to the frame's next best
     relations and finally to pushing a penetrating observation out.
@@ -47,17 +47,17 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
     :param chosen: the relation chosen for the frame.
     :param frame: the frame's candidates (pool and scored relations).
     :param guard: the pool's guard flags (pairs whose penetration is real).
-    :param element_margin: largest accepted distance [m] of a contact point outside its
-        elements after correction (default: ``kwargs['element_margin']``).
+    :param recognition_margin: the recognition's search margin [m]: contact points may end up
+        this far outside their elements (default: ``kwargs['element_margin']`` only).
     :param kwargs: passed to :func:`~contact_correction.correction.correct_pose`.
     """
     kwargs = dict(kwargs)
     kwargs.setdefault('prune_off_element', True)
-    if element_margin is not None:
+    if recognition_margin is not None:
         # a recognised face-face contact may end with some of its pairs just beyond the
         # overlap (the free coordinates are kept as observed); within the recognition margin
         # that is accepted, penetration is still checked
-        kwargs['element_margin'] = max(kwargs.get('element_margin', 0.0), element_margin)
+        kwargs['element_margin'] = max(kwargs.get('element_margin', 0.0), recognition_margin)
     check = kwargs.get('check_penetration', True)
     spacing = kwargs.get('penetration_spacing', 0.005)
     pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check \
@@ -85,21 +85,29 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
             return r
         first = first or r
     if check and pen > tol and frame.pool:
-        # last resort: the pairs that penetrate, non-linear step only (any feasible pose)
-        from .contact_relation import evaluate_contacts, relative_pose
-        g = evaluate_contacts(moving, fixed, relative_pose(T_moving, T_fixed), frame.pool)
-        sel = g.distances < 0
-        if guard is not None and len(guard) == len(sel):
-            sel &= guard
-        pairs = [p for p, s in zip(frame.pool, sel) if s]
-        if pairs:
-            kw = dict(kwargs, optimal=False)
-            r = correct_pose(moving, fixed, T_moving, T_fixed, pairs, **kw)
+        # last resort: the pairs that penetrate, non-linear step only (any feasible pose);
+        # pairs found penetrating at the attempt's pose are added and the attempt repeated
+        sel = np.zeros(len(frame.pool), dtype=bool)
+        T_try = np.asarray(T_moving, dtype=float)
+        kw = dict(kwargs, optimal=False)
+        for _ in range(3):
+            g = evaluate_contacts(moving, fixed, relative_pose(T_try, T_fixed), frame.pool)
+            new = g.distances < -tol
+            if guard is not None and len(guard) == len(new) and T_try is T_moving:
+                new &= guard
+            if not np.any(new & ~sel):
+                break
+            sel |= new
+            r = correct_pose(moving, fixed, T_moving, T_fixed,
+                             [p for p, s in zip(frame.pool, sel) if s], **kw)
             r.relation_source = 'recognised, push-out'
             if r.corrected:
                 r.status += ' (push-out: no recognised relation could be enforced and the ' \
                             'observation penetrates)'
                 return r
+            if r.T_nonlinear is None:
+                break
+            T_try = r.T_nonlinear
     if first is None:
         first = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
                                  status='no usable relation; pose passed through',

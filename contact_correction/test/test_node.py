@@ -46,7 +46,7 @@ def corrector(ros_node):
     node = ContactCorrectionNode(context=ros_node.context, parameter_overrides=[
         Parameter('moving_object', value='peg'), Parameter('fixed_object', value='hole_block'),
         Parameter('fixed_pose_static', value=STATIC), Parameter('tolerance', value=0.004),
-        Parameter('penetration_tolerance', value=0.004)])
+        Parameter('penetration_tolerance', value=0.004), Parameter('recognition', value=False)])
     yield node
     node.destroy_node()
 
