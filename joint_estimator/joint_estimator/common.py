@@ -79,6 +79,21 @@ class JointFit:
     :ivar inliers: (N,) bool, False for frames rejected as outliers.
     :ivar n_params: number of model parameters (without the per-frame coordinates).
     :ivar score: BIC (lower is better), NaN until scored by the model selection.
+    :ivar repaired: (N,) bool, frames whose pose was replaced by its ambiguous twin
+        (:mod:`joint_estimator.ambiguity`); the residuals are those of the pose used.
+    :ivar sigma_position: position noise scale [m] the residuals are normalised by (estimated
+        from the data unless given); :ivar sigma_rotation: the same for orientations [rad].
+    :ivar scale_estimated: True when the noise scales were estimated from the data.
+    :ivar coordinate_range: ``(lo, hi)`` of the first joint coordinate over the inlier frames
+        (unwrapped angle [rad] or displacement [m]); :ivar motion_range: the same over all
+        frames (rejected ones projected on the joint); :ivar coverage: inlier span / motion
+        span (1 when the motion has no span); NaN for types without a 1-d coordinate.
+    :ivar axis_angle_std_in_a: 1-sigma axis direction uncertainty [rad] in A (and
+        ``axis_angle_std_in_b`` in B), :ivar axis_point_std: 1-sigma uncertainty [m] of the
+        axis position across the axis at ``point_in_b`` (first order, from the Jacobian of the
+        refinement; revolute and cylindrical only, NaN otherwise).
+    :ivar warnings: reasons not to trust the estimate (many rejected frames, inliers covering
+        little of the motion, degenerate motion).
     """
 
     joint_type: JointType
@@ -100,6 +115,24 @@ class JointFit:
     translation_range: float = float('nan')
     score: float = float('nan')
     extra: dict = field(default_factory=dict)
+    repaired: Optional[np.ndarray] = None
+    sigma_position: float = float('nan')
+    sigma_rotation: float = float('nan')
+    scale_estimated: bool = False
+    coordinate_range: tuple = (float('nan'), float('nan'))
+    motion_range: tuple = (float('nan'), float('nan'))
+    coverage: float = float('nan')
+    axis_angle_std_in_a: float = float('nan')
+    axis_angle_std_in_b: float = float('nan')
+    axis_point_std: float = float('nan')
+    warnings: list = field(default_factory=list)
+
+    @property
+    def repaired_indices(self) -> np.ndarray:
+        """Indices (int array) of the frames whose ambiguous twin pose was used."""
+        if self.repaired is None:
+            return np.zeros(0, dtype=int)
+        return np.flatnonzero(self.repaired)
 
     @property
     def dof(self) -> int:

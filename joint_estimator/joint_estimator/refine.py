@@ -22,7 +22,7 @@ from joint_estimator.common import minimal_rotations_onto, perpendicular_basis
 from joint_estimator.models import CylindricalModel
 from joint_estimator.revolute import AxisLineModel, RevoluteModel
 
-__all__ = ['is_refinable', 'refine_model', 'levenberg_marquardt']
+__all__ = ['is_refinable', 'refine_model', 'levenberg_marquardt', 'axis_uncertainty']
 
 
 def _unit(v):
@@ -67,22 +67,16 @@ def levenberg_marquardt(fun, x0: np.ndarray, max_iterations: int = 8, step: floa
     return x if improved else None
 
 
-def refine_model(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
-                 sigma_rotation: float, max_iterations: int = 8):
-    """Refined copy of a revolute or cylindrical ``model`` (others are returned as they are).
-
-    Parameters: ``^A l`` and ``^B l`` (2 each, tangent steps), ``^B c`` across the axis (2) and
-    ``^A c`` (3 for revolute, 2 across the axis for cylindrical): the gauge (sliding the points
-    along the axis) is fixed, and the result is brought back to the minimum-norm points.
-
-    :param R: (N, 3, 3) orientations, :param p: (N, 3) positions [m] of the frames to fit.
-    """
-    if not is_refinable(model):
-        return model
+def _parametrisation(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
+                     sigma_rotation: float, ray_ratio: float = 1.0) -> tuple:
+    """``(build, residuals, n_params)`` of an axis model about its current value: ``build(x)``
+    is the model at the local parameters ``x`` (zeros: ``model``), ``residuals(x)`` the
+    noise-normalised residual vector (6 per frame) of the frames ``R``, ``p``."""
     cyl = isinstance(model, CylindricalModel)
     a0, b0 = model.axis_in_a, model.axis_in_b
     ga, gb = perpendicular_basis(a0), perpendicular_basis(b0)
     ca0, cb0 = model.point_in_a, model.point_in_b
+    v = p / np.maximum(np.linalg.norm(p, axis=1), 1e-12)[:, None]
 
     def build(x):
         a = _unit(a0 + x[0] * ga[0] + x[1] * ga[1])
@@ -98,14 +92,37 @@ def refine_model(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
 
     def residuals(x):
         m = build(x)
-        R_hat, p_hat, _ = m.project(R, p, sigma_position, sigma_rotation)
+        R_hat, p_hat, _ = m.project(R, p, sigma_position * ray_ratio, sigma_rotation)
         E = R_hat @ np.transpose(R, (0, 2, 1))
         # sin(angle) * axis of the residual rotation: its rotation vector to first order
         rot = 0.5 * np.stack([E[:, 2, 1] - E[:, 1, 2], E[:, 0, 2] - E[:, 2, 0],
                               E[:, 1, 0] - E[:, 0, 1]], axis=1) / sigma_rotation
-        return np.concatenate([rot.ravel(), ((p_hat - p) / sigma_position).ravel()])
+        d = p_hat - p
+        if ray_ratio != 1.0:       # whiten the component along the line of sight
+            d = d + v * (np.einsum('ni,ni->n', d, v) * (1.0 / ray_ratio - 1.0))[:, None]
+        return np.concatenate([rot.ravel(), (d / sigma_position).ravel()])
 
-    x0 = np.zeros(8 if cyl else 9)
+    return build, residuals, (8 if cyl else 9)
+
+
+def refine_model(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
+                 sigma_rotation: float, max_iterations: int = 8, ray_ratio: float = 1.0):
+    """Refined copy of a revolute or cylindrical ``model`` (others are returned as they are).
+
+    Parameters: ``^A l`` and ``^B l`` (2 each, tangent steps), ``^B c`` across the axis (2) and
+    ``^A c`` (3 for revolute, 2 across the axis for cylindrical): the gauge (sliding the points
+    along the axis) is fixed, and the result is brought back to the minimum-norm points.
+
+    :param R: (N, 3, 3) orientations, :param p: (N, 3) positions [m] of the frames to fit.
+    :param ray_ratio: position noise along the line of sight from B's origin over the noise
+        across it (``sigma_position``); the residual's component along it is divided by it.
+    """
+    if not is_refinable(model):
+        return model
+    cyl = isinstance(model, CylindricalModel)
+    build, residuals, k = _parametrisation(model, R, p, sigma_position, sigma_rotation,
+                                           ray_ratio)
+    x0 = np.zeros(k)
     if R.shape[0] * 6 <= x0.size:
         return model
     x = levenberg_marquardt(residuals, x0, max_iterations)
@@ -121,3 +138,56 @@ def refine_model(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
         m.point_in_a = m.point_in_a + s * a
         m.point_in_b = m.point_in_b + s * b
     return m
+
+
+def axis_uncertainty(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
+                     sigma_rotation: float, anchor_in_b: np.ndarray, step: float = 1e-6,
+                     ray_ratio: float = 1.0) -> dict:
+    """First-order (Gauss-Newton) uncertainty of an axis joint from the frames it was fitted to.
+
+    The covariance of the local parameters is ``(J^T J)^-1`` with ``J`` the Jacobian of the
+    noise-normalised residuals (forward differences), i.e. it assumes the noise scales are right
+    (they are the estimated ones by default). It is propagated to the axis directions (angle
+    std, the root of the trace of the 2x2 tangent covariance) and to the axis point nearest
+    ``anchor_in_b`` (distance std across the axis, root of the trace of its 2x2 covariance).
+
+    :param R: (N, 3, 3) orientations, :param p: (N, 3) positions [m] of the inlier frames.
+    :param anchor_in_b: (3,) point [m] in link B (the data's centre) at which the axis position
+        uncertainty is evaluated.
+    :returns: ``{'axis_angle_std_in_a', 'axis_angle_std_in_b'`` [rad], ``'axis_point_std'`` [m],
+        ``'covariance'`` (k, k) of the local parameters}, NaN where the Jacobian is singular;
+        None for models without an axis line.
+    """
+    if not is_refinable(model) or R.shape[0] * 6 <= 9:
+        return None
+    build, residuals, k = _parametrisation(model, R, p, sigma_position, sigma_rotation,
+                                           ray_ratio)
+    r0 = residuals(np.zeros(k))
+    J = np.empty((r0.size, k))
+    eye = np.eye(k)
+    for j in range(k):
+        J[:, j] = (residuals(eye[j] * step) - r0) / step
+    nan = {'axis_angle_std_in_a': float('nan'), 'axis_angle_std_in_b': float('nan'),
+           'axis_point_std': float('nan'), 'covariance': np.full((k, k), np.nan)}
+    try:
+        cov = np.linalg.pinv(J.T @ J, rcond=1e-12, hermitian=True)
+    except np.linalg.LinAlgError:
+        return nan
+    if not np.all(np.isfinite(cov)):
+        return nan
+
+    def near_point(x):
+        m = build(x)
+        b, cb = m.axis_in_b, m.point_in_b
+        return cb + b * ((anchor_in_b - cb) @ b)
+
+    c0 = near_point(np.zeros(k))
+    G = np.empty((3, k))
+    for j in range(k):
+        G[:, j] = (near_point(eye[j] * step) - c0) / step
+    P = np.eye(3) - np.outer(model.axis_in_b, model.axis_in_b)
+    cov_c = P @ G @ cov @ G.T @ P
+    return {'axis_angle_std_in_a': float(np.sqrt(max(np.trace(cov[:2, :2]), 0.0))),
+            'axis_angle_std_in_b': float(np.sqrt(max(np.trace(cov[2:4, 2:4]), 0.0))),
+            'axis_point_std': float(np.sqrt(max(np.trace(cov_c), 0.0))),
+            'covariance': cov}

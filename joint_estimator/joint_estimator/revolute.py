@@ -23,7 +23,9 @@ Steps (each a public function so that it can be tested against the chapter):
    ``A(t) = (-^B hat Theta_A(t)  I)``. The 6x6 matrix has rank 5 (the point is free along the
    axis: ``(^A c + s ^A l, ^B c + s ^B l)`` solves it for every s), so it is solved with the SVD,
    dropping singular values below ``1e-9`` of the largest; this gives the **minimum-norm**
-   solution, i.e. the pair of axis points closest to the two link origins jointly.
+   solution, i.e. the pair of axis points closest to the two link origins jointly. The
+   reported :class:`JointFit` point is the one nearest the data instead (the foot of the
+   inlier positions' centre on the axis), the minimum-norm pair is kept in its ``extra``.
 4. Corrected track: ``^B hat t_A(t) = ^B c - ^B hat Theta_A(t) ^A c`` which, with step 2,
    satisfies Eqs. (10)-(11) exactly; joint angle ``q(t)`` from
    ``^B hat Theta_A(t) = R(^B l, q(t)) R_0`` where ``R_0`` is the minimal rotation taking
@@ -305,14 +307,22 @@ def make_fit(model, R: np.ndarray, p: np.ndarray, sigma_position: float, sigma_r
         raise ValueError(f"correction must be 'chapter' or 'ml', got {correction!r}")
     rot, pos, chi2 = frame_residuals(R, p, R_hat, p_hat, sigma_position, sigma_rotation)
     zero = np.zeros(3)
+    inliers = np.ones(R.shape[0], bool) if inliers is None else inliers
+    point_a, point_b = (getattr(model, 'point_in_a', zero), getattr(model, 'point_in_b', zero))
+    extra = {}
+    if isinstance(model, AxisLineModel) and inliers.any():
+        # the point of the (free) axis line nearest the data: foot of the inlier positions'
+        # centre, the same point in both links
+        s = float((p[inliers].mean(axis=0) - point_b) @ model.axis_in_b)
+        extra = {'minimum_norm_point_in_a': point_a, 'minimum_norm_point_in_b': point_b}
+        point_a, point_b = point_a + s * model.axis_in_a, point_b + s * model.axis_in_b
     return JointFit(
         joint_type=model.joint_type,
         axis_in_a=getattr(model, 'axis_in_a', zero), axis_in_b=getattr(model, 'axis_in_b', zero),
-        point_in_a=getattr(model, 'point_in_a', zero),
-        point_in_b=getattr(model, 'point_in_b', zero),
+        point_in_a=point_a, point_in_b=point_b,
         corrected=compose_track(R_hat, p_hat), coordinates=q, rotation_residuals=rot,
-        position_residuals=pos, chi2=chi2,
-        inliers=np.ones(R.shape[0], bool) if inliers is None else inliers,
+        position_residuals=pos, chi2=chi2, inliers=inliers, extra=extra,
+        sigma_position=float(sigma_position), sigma_rotation=float(sigma_rotation),
         n_params=model.n_params, model=model, degenerate=bool(getattr(model, 'degenerate', False)),
         status=getattr(model, 'status', ''),
         rotation_range=float(getattr(model, 'rotation_range', float('nan'))),

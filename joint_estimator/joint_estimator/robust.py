@@ -1,112 +1,256 @@
-"""Outlier frames (tracking failures) excluded by MSAC over minimal frame sets + robust refit.
+"""Outlier frames, ambiguous (flipped) poses and the noise scale, estimated together.
 
 MSAC (the truncated-quadratic member of the RANSAC/MLESAC family, Torr & Zisserman 2000):
 hypotheses are fitted to random minimal frame sets (:data:`~joint_estimator.models.MIN_SAMPLES`)
 and scored on all frames by ``sum_t min(chi2_t, threshold)``, where ``chi2_t`` is the
 noise-normalised residual of frame t about the model (orientation + position, 6 degrees of
 freedom; default threshold the 99.9 % quantile of chi-square with 6 dof). The fit on all frames
-is always the first hypothesis, so clean data keep the plain estimate. The best hypothesis' inliers
-are refitted with the full model (degeneracy checks included; by default followed by the
-maximum-likelihood refinement of :mod:`joint_estimator.refine`) and re-classified until the inlier
-set is stable.
+is always the first hypothesis, so clean data keep the plain estimate. The best hypothesis'
+inliers are refitted with the full model (degeneracy checks included; by default followed by
+the maximum-likelihood refinement of :mod:`joint_estimator.refine`) and re-classified until the
+inlier set is stable.
+
+**Candidate poses per frame.** A frame may carry several candidate poses (``(N, K, 3, 3)``
+orientations, ``(N, K, 3)`` positions): the measured pose first, then its ambiguous twins
+(:mod:`joint_estimator.ambiguity`). Every hypothesis uses, per frame, the candidate with the
+smallest residual, so a flipped pose whose twin fits the joint is *repaired* rather than
+rejected; the frames are reported (``choice != 0``). Minimal sets draw a random candidate per
+frame.
+
+**Noise scale.** With ``sigma_position`` / ``sigma_rotation`` None, the scales are estimated from
+the data: for each hypothesis from the median of its per-frame rotation angles and position
+distances (a 3-d Gaussian residual has median norm ``1.538 sigma``), the hypothesis cost then
+being ``sum_t min(chi2_t, threshold) + 6 N ln(sigma_rot sigma_pos)`` (the -2 log-likelihood of
+the truncated Gaussian up to constants, so that a hypothesis cannot win by inflating its
+scale); after selection, from the RMS residual of the inliers (corrected for the joint
+coordinates and model parameters fitted), iterated with the inlier classification until both
+are stable. Given sigmas are used as they are.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from joint_estimator.common import DegenerateMotionError, JointType
+from joint_estimator.common import DegenerateMotionError, JOINT_DOF, JointType
 from joint_estimator.models import DEFAULT_MIN_TRANSLATION_RANGE, fit_model, MIN_SAMPLES
 from joint_estimator.refine import is_refinable, refine_model
 from joint_estimator.revolute import DEFAULT_MIN_ROTATION_RANGE
 
-__all__ = ['DEFAULT_THRESHOLD', 'frame_chi2', 'robust_fit']
+__all__ = ['DEFAULT_THRESHOLD', 'MEDIAN_NORM_3D', 'MIN_SIGMA_POSITION', 'MIN_SIGMA_ROTATION',
+           'RobustFit', 'frame_chi2', 'candidate_residuals', 'line_of_sight_ratio',
+           'median_scales', 'rms_scales', 'robust_fit']
 
 #: Per-frame chi-square above which a frame is an outlier (99.9 % quantile, 6 dof).
 DEFAULT_THRESHOLD = float(chi2_dist.ppf(0.999, 6))
+#: Median of the norm of a 3-d standard normal vector (sqrt of chi-square(3)'s median).
+MEDIAN_NORM_3D = float(np.sqrt(chi2_dist.ppf(0.5, 3)))
+#: Floors of the estimated noise scales (noise-free data would give zero).
+MIN_SIGMA_POSITION = 1e-6
+MIN_SIGMA_ROTATION = 1e-6
+#: Scales used to pick candidates before any scale is known (only their ratio matters there).
+_START_SIGMAS = (0.005, np.deg2rad(2.0))
 
 
-def frame_chi2(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
-               sigma_rotation: float) -> np.ndarray:
-    """Noise-normalised squared residual (N,) of each frame about its projection on ``model``
-    (chordal orientation distance ``3 - Tr(hat R R^T)`` ~ squared angle)."""
-    R_hat, p_hat, _ = model.project(R, p, sigma_position, sigma_rotation)
-    rot = 3.0 - np.einsum('nij,nij->n', R_hat, R)
-    pos = np.sum((p_hat - p) ** 2, axis=1)
-    return np.maximum(rot, 0.0) / sigma_rotation ** 2 + pos / sigma_position ** 2
+def _angles_from_chordal(c: np.ndarray) -> np.ndarray:
+    """Rotation angle [rad] from the chordal distance ``3 - Tr(R_a R_b^T) = 4 sin^2(a / 2)``."""
+    return 2.0 * np.arcsin(np.clip(np.sqrt(np.maximum(c, 0.0)) / 2.0, 0.0, 1.0))
 
 
-def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray, sigma_position: float,
-               sigma_rotation: float,
+def candidate_residuals(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
+                        sigma_rotation: float, ray_ratio: float = 1.0) -> tuple:
+    """Rotation angle [rad] and position distance [m] of every candidate about ``model``.
+
+    :param R: (N, K, 3, 3) candidate orientations; :param p: (N, K, 3) candidate positions.
+    :param ray_ratio: position noise along the line of sight from B's origin (a camera) over
+        the noise across it; the component of the position residual along the line of sight is
+        divided by it (whitened distance), 1 = isotropic.
+    :returns: ``(rotation (N, K), position (N, K))``.
+    """
+    n, k = R.shape[:2]
+    Rf, pf = R.reshape(n * k, 3, 3), p.reshape(n * k, 3)
+    # joint coordinates from positions weighted as noisy as along the line of sight: the
+    # closed-form projections are isotropic, and depth noise must not drive them
+    R_hat, p_hat, _ = model.project(Rf, pf, sigma_position * ray_ratio, sigma_rotation)
+    rot = _angles_from_chordal(3.0 - np.einsum('nij,nij->n', R_hat, Rf))
+    d = p_hat - pf
+    if ray_ratio != 1.0:
+        v = pf / np.maximum(np.linalg.norm(pf, axis=1), 1e-12)[:, None]
+        along = np.einsum('ni,ni->n', d, v)
+        d = d + np.outer(along, np.ones(3)) * v * (1.0 / ray_ratio - 1.0)
+    pos = np.linalg.norm(d, axis=1)
+    return rot.reshape(n, k), pos.reshape(n, k)
+
+
+def line_of_sight_ratio(p: np.ndarray, max_ratio: float = 100.0,
+                        max_correlation: float = -0.4) -> float:
+    """Position noise along the line of sight from B's origin (a camera: depth) over the noise
+    across it, measured without any model from the second differences of a densely sampled
+    track (``d_t = p_{t-1} - 2 p_t + p_{t+1}``, noise-dominated when the motion per frame is
+    smooth): ``sqrt((median (d.v)^2 / 0.455) / (median |d_perp|^2 / 2 / 0.693))`` (the medians
+    of chi-square 1 and of chi-square 2 / 2).
+
+    The second differences of white noise have a lag-1 autocorrelation of -2/3, of a smooth
+    motion a positive one; unless it is below ``max_correlation`` (the differences are noise)
+    the track is too sparse to tell and 1 (isotropic) is returned.
+
+    :param p: (N, 3) positions of A in B [m], in time order. :returns: ratio in [1, max_ratio].
+    """
+    p = np.asarray(p, dtype=float)
+    if p.shape[0] < 8:
+        return 1.0
+    d = p[:-2] - 2.0 * p[1:-1] + p[2:]
+    x, y = d[:-1].ravel(), d[1:].ravel()
+    den = float(np.sqrt(np.sum(x * x) * np.sum(y * y)))
+    if den <= 0.0 or float(np.sum(x * y)) / den > max_correlation:
+        return 1.0
+    v = p[1:-1] / np.maximum(np.linalg.norm(p[1:-1], axis=1), 1e-12)[:, None]
+    along2 = np.einsum('ni,ni->n', d, v) ** 2
+    across2 = np.maximum(np.sum(d ** 2, axis=1) - along2, 0.0) / 2.0
+    den = float(np.median(across2)) / 0.6931
+    if den <= 0.0:
+        return 1.0
+    return float(np.clip(np.sqrt(float(np.median(along2)) / 0.4549 / den), 1.0, max_ratio))
+
+
+def median_scales(rot: np.ndarray, pos: np.ndarray) -> tuple:
+    """Robust noise scales ``(sigma_position [m], sigma_rotation [rad])`` from per-frame residual
+    norms (each the norm of a 3-d Gaussian vector): median / 1.538, floored."""
+    return (max(float(np.median(pos)) / MEDIAN_NORM_3D, MIN_SIGMA_POSITION),
+            max(float(np.median(rot)) / MEDIAN_NORM_3D, MIN_SIGMA_ROTATION))
+
+
+def rms_scales(rot: np.ndarray, pos: np.ndarray, dof: int, n_params: int) -> tuple:
+    """Noise scales ``(sigma_position, sigma_rotation)`` from the residual norms of inlier
+    frames: RMS per axis, corrected for the ``dof`` joint coordinates per frame and the
+    ``n_params`` model parameters fitted (``6 n / (6 n - dof n - n_params)``), floored."""
+    n = rot.size
+    free = max(6 * n - dof * n - n_params, 1)
+    f = 6.0 * n / free
+    return (max(float(np.sqrt(f * np.sum(pos ** 2) / (3 * n))), MIN_SIGMA_POSITION),
+            max(float(np.sqrt(f * np.sum(rot ** 2) / (3 * n))), MIN_SIGMA_ROTATION))
+
+
+@dataclass
+class RobustFit:
+    """Result of :func:`robust_fit`.
+
+    :ivar model: the fitted joint model.
+    :ivar inliers: (N,) bool, frames that agree with the model (with their chosen candidate).
+    :ivar choice: (N,) int, index of the candidate pose used per frame (0: the measured pose).
+    :ivar sigma_position: noise scale [m] used (estimated unless given).
+    :ivar sigma_rotation: noise scale [rad] used (estimated unless given).
+    :ivar scale_estimated: True when the scales were estimated from the data.
+    :ivar cost: MSAC cost of the final model.
+    """
+
+    model: object
+    inliers: np.ndarray
+    choice: np.ndarray
+    sigma_position: float
+    sigma_rotation: float
+    scale_estimated: bool
+    cost: float
+
+
+def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
+               sigma_position: Optional[float] = None, sigma_rotation: Optional[float] = None,
                min_rotation_range: float = DEFAULT_MIN_ROTATION_RANGE,
                min_translation_range: float = DEFAULT_MIN_TRANSLATION_RANGE,
                threshold: float = DEFAULT_THRESHOLD, confidence: float = 0.99,
                max_iterations: int = 100, min_iterations: int = 10,
-               refine: bool = True, rng: Optional[np.random.Generator] = None) -> tuple:
-    """Fit ``joint_type`` robustly.
+               refine: bool = True, rng: Optional[np.random.Generator] = None,
+               max_rounds: int = 8, ray_ratio: float = 1.0) -> RobustFit:
+    """Fit ``joint_type`` robustly, choosing one candidate pose per frame.
 
-    :param R: (N, 3, 3) orientations; :param p: (N, 3) positions [m].
-    :param sigma_position: position noise std [m]; :param sigma_rotation: orientation noise
-        std [rad] (both per axis).
+    :param R: (N, 3, 3) orientations or (N, K, 3, 3) candidate orientations (index 0 the
+        measured pose); :param p: (N, 3) or (N, K, 3) positions [m].
+    :param sigma_position: position noise std [m] per axis, None to estimate it.
+    :param sigma_rotation: orientation noise std [rad] per axis, None to estimate it.
     :param threshold: per-frame chi-square above which a frame is rejected.
     :param confidence: RANSAC stopping confidence of having drawn one all-inlier set.
     :param refine: refit axis joints by maximum likelihood (:mod:`joint_estimator.refine`).
-    :returns: ``(model, inliers (N,) bool, msac_cost)``.
+    :param max_rounds: refit / re-classify rounds after the hypothesis search.
+    :param ray_ratio: position noise along the line of sight from B's origin over the noise
+        across it (:func:`candidate_residuals`); ``sigma_position`` is then the noise across.
     :raises ValueError: too few frames; :raises DegenerateMotionError: the inliers' motion does
         not determine the model.
     """
     jt = JointType(joint_type)
-    n = R.shape[0]
+    if R.ndim == 3:
+        R, p = R[:, None], p[:, None]
+    n, k = R.shape[:2]
     m = MIN_SAMPLES[jt]
     if n < m:
         raise ValueError(f'{jt.name.lower()} joint: {n} poses given, at least {m} needed')
     rng = np.random.default_rng(0) if rng is None else rng
+    fix_p, fix_r = sigma_position is not None, sigma_rotation is not None
+    estimate = not (fix_p and fix_r)
+    rows = np.arange(n)
 
-    def cost_of(model):
-        c2 = frame_chi2(model, R, p, sigma_position, sigma_rotation)
-        return float(np.minimum(c2, threshold).sum()), c2
+    def with_given(sp, sr):
+        return (sigma_position if fix_p else sp, sigma_rotation if fix_r else sr)
+
+    start = with_given(*_START_SIGMAS)
+
+    def evaluate(model, scales=None):
+        """(cost, chi2 (N,), choice (N,), scales) of a model; scales estimated if None."""
+        sp, sr = start if scales is None else scales
+        rot, pos = candidate_residuals(model, R, p, sp, sr, ray_ratio)
+        if scales is None and estimate:
+            choice = np.argmin((rot / sr) ** 2 + (pos / sp) ** 2, axis=1)
+            sp, sr = with_given(*median_scales(rot[rows, choice], pos[rows, choice]))
+        c2 = (rot / sr) ** 2 + (pos / sp) ** 2
+        choice = np.argmin(c2, axis=1)
+        c2 = c2[rows, choice]
+        cost = float(np.minimum(c2, threshold).sum())
+        if estimate:
+            cost += 6.0 * n * float(np.log(sp * sr))
+        return cost, c2, choice, (sp, sr), rot[rows, choice], pos[rows, choice]
 
     def iterations_needed(c2):
-        w = float(np.mean(c2 < threshold))
+        w = float(np.mean(c2 < threshold)) / k        # a random candidate per sampled frame
         if w >= 1.0:
             return 0
         if w <= 0.0:
             return max_iterations
         return int(np.ceil(np.log(1.0 - confidence) / np.log(1.0 - w ** m)))
 
-    best_cost, best_c2, best_model, needed = np.inf, None, None, max_iterations
+    best, best_model, needed = None, None, max_iterations
     try:
-        full = fit_model(jt, R, p, min_rotation_range, min_translation_range)
-        best_cost, best_c2 = cost_of(full)
-        best_model, needed = full, iterations_needed(best_c2)
+        full = fit_model(jt, R[:, 0], p[:, 0], min_rotation_range, min_translation_range)
+        best, best_model = evaluate(full), full
+        needed = iterations_needed(best[1])
     except DegenerateMotionError:
         pass          # outliers can fake (or hide) motion: let the minimal sets decide
     it = 0
     while it < min(max(needed, min_iterations), max_iterations):
         it += 1
         idx = rng.choice(n, size=m, replace=False)
+        pick = rng.integers(0, k, size=m)
         try:
-            hyp = fit_model(jt, R[idx], p[idx], 0.0, 0.0)
+            hyp = fit_model(jt, R[idx, pick], p[idx, pick], 0.0, 0.0)
         except (DegenerateMotionError, np.linalg.LinAlgError):
             continue
-        cost, c2 = cost_of(hyp)
-        if cost < best_cost:
-            best_cost, best_c2, best_model = cost, c2, hyp
-            needed = iterations_needed(c2)
-    if best_c2 is None:
+        res = evaluate(hyp)
+        if best is None or res[0] < best[0]:
+            best, best_model = res, hyp
+            needed = iterations_needed(res[1])
+    if best is None:
         raise DegenerateMotionError(f'{jt.name.lower()} joint: no frame set determines the model')
-    inliers = best_c2 < threshold
+    _, c2, choice, scales, _, _ = best
+    inliers = c2 < threshold
     model, checked, refined = best_model, False, False
-    for _ in range(3):
+    for _ in range(max_rounds):
         if inliers.sum() < m:
             raise DegenerateMotionError(
                 f'{jt.name.lower()} joint: only {int(inliers.sum())} frames agree with any model')
+        R_in, p_in = R[rows, choice][inliers], p[rows, choice][inliers]
         try:
-            base = fit_model(jt, R[inliers], p[inliers], min_rotation_range,
-                             min_translation_range)
+            base = fit_model(jt, R_in, p_in, min_rotation_range, min_translation_range)
             checked = True
         except DegenerateMotionError:
             if not refine:
@@ -115,16 +259,29 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray, sigma_positi
             # residuals); refine the current model on these frames and re-classify instead
             base, checked = model, False
         if refine and is_refinable(base):   # later rounds start from the previous result
-            model = refine_model(model if refined else base, R[inliers], p[inliers],
-                                 sigma_position, sigma_rotation)
+            model = refine_model(model if refined else base, R_in, p_in, *scales,
+                                 ray_ratio=ray_ratio)
             refined = True
         else:
             model = base
-        best_cost, c2 = cost_of(model)
-        new = c2 < threshold
-        if np.array_equal(new, inliers) or new.sum() < m:
+        cost, c2_new, choice_new, _, rot, pos = evaluate(model, scales)
+        new_scales = scales
+        if estimate:
+            ok = c2_new < threshold
+            if ok.sum() >= m:
+                new_scales = with_given(*rms_scales(rot[ok], pos[ok], JOINT_DOF[jt],
+                                                    model.n_params))
+                cost, c2_new, choice_new, _, _, _ = evaluate(model, new_scales)
+        new = c2_new < threshold
+        stable = (np.array_equal(new, inliers) and np.array_equal(choice_new, choice)
+                  and np.allclose(new_scales, scales, rtol=0.02))
+        scales = new_scales
+        if stable or new.sum() < m:
+            inliers, choice = (new, choice_new) if new.sum() >= m else (inliers, choice)
             break
-        inliers, checked = new, False
+        inliers, choice, checked = new, choice_new, False
     if not checked:       # degeneracy test on the final inlier set
-        fit_model(jt, R[inliers], p[inliers], min_rotation_range, min_translation_range)
-    return model, inliers, best_cost
+        fit_model(jt, R[rows, choice][inliers], p[rows, choice][inliers], min_rotation_range,
+                  min_translation_range)
+    return RobustFit(model, inliers, choice, float(scales[0]), float(scales[1]), estimate,
+                     float(cost))

@@ -56,7 +56,7 @@ def test_wrong_shapes_and_parameters(track):
         bad = track.copy()
         bad[2, 3, 0] = 1.0
         validate_track(bad)
-    with pytest.raises(ValueError, match='noise levels must be positive'):
+    with pytest.raises(ValueError, match='sigma_position must be positive'):
         estimate_joint(track, sigma_position=0.0)
     with pytest.raises(ValueError):
         estimate_joint(track, joint_type=9)
