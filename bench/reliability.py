@@ -523,6 +523,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--quick', action='store_true',
                         help='smoke run: 30 fuzz cases, 2-minute soak (not a result)')
     parser.add_argument('--out', default=None, help='results directory')
+    parser.add_argument('--merge', nargs='*', default=[],
+                        help='reliability.json files of runs made in parallel (e.g. one per '
+                             'fuzz node): their sections are merged in (fuzz per node)')
     opts = parser.parse_args(argv)
     if opts.quick:
         opts.fuzz_cases, opts.soak_minutes, opts.warmup = 30, 2.0, 30.0
@@ -531,13 +534,23 @@ def main(argv: Optional[List[str]] = None) -> int:
     path = out_dir / f'{NAME}.json'
     previous = json.loads(path.read_text()) if path.exists() else {}
     sections = previous.get('sections', {})
+    runs = dict(previous.get('runs', {}))
+    for other in opts.merge:
+        data = json.loads(Path(other).read_text())
+        for key, value in data.get('sections', {}).items():
+            if key == 'fuzz':
+                sections.setdefault('fuzz', {}).update(value)
+            else:
+                sections[key] = value
+        for key, value in data.get('runs', {}).items():
+            runs[f'{key} ({other})'] = value
     load = {'loadavg_start': os.getloadavg()}
 
     def log(text: str) -> None:
         print(text, flush=True)
 
     from fuzz_targets import TARGETS
-    for section in opts.sections:
+    for section in (opts.sections if not opts.merge else []):
         t0 = time.monotonic()
         log(f'== {section}')
         if section == 'fuzz':
@@ -554,7 +567,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         load[f'{section}_wall_time_s'] = time.monotonic() - t0
         load[f'loadavg_after_{section}'] = os.getloadavg()
     write_report(NAME, goals_of(sections, 1000), directory=out_dir, sections=sections,
-                 runs={**previous.get('runs', {}), **{s: {'date_utc': time.strftime(
+                 runs={**runs, **{s: {'date_utc': time.strftime(
                      '%Y-%m-%dT%H:%M:%SZ', time.gmtime()), 'quick': opts.quick,
                      'fuzz_cases_per_node': opts.fuzz_cases, **load} for s in opts.sections}},
                  method=__doc__)
