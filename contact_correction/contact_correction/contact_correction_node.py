@@ -278,8 +278,9 @@ class ContactCorrectionNode(Node):
     # --- streaming input ------------------------------------------------------------------
 
     def _reject(self, what: str, why: str, key: str = 'rejected') -> None:
-        self.counts[key] += 1
-        self.get_logger().warning(f'{what} not corrected ({self.counts[key]} so far): {why}')
+        self.counts[key] += 1      # counted every time; the warning at most 1/s per reason
+        self.rejections.reject(f'{what}:{key}', f'{what} not corrected ({self.counts[key]} so '
+                               f'far): {why}')
 
     def _on_fixed(self, msg: PoseStamped) -> None:
         try:

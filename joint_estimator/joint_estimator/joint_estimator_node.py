@@ -229,8 +229,9 @@ class JointEstimatorNode(Node):
     # --- streaming input ------------------------------------------------------------------
 
     def _reject(self, what: str, why: str) -> None:
-        self.counts['rejected'] += 1
-        self.get_logger().warning(f'{what} rejected ({self.counts["rejected"]} so far): {why}')
+        self.counts['rejected'] += 1    # counted every time; the warning at most 1/s per input
+        self.rejections.reject(what, f'{what} rejected ({self.counts["rejected"]} so far): '
+                               f'{why}')
 
     def _on_link(self, msg: PoseStamped, key: str) -> None:
         self.counts['received'] += 1
