@@ -102,7 +102,8 @@ def run_fuzz(cases_per_node: int, names: List[str], log) -> Dict[str, Any]:
             'crash_log_tails': [c[-1500:] for c in session.crash_logs[:3]],
             'tracebacks_in_output': output.count('Traceback'),
         }
-        log(f'  fuzz {name}: {json.dumps({k: v for k, v in out[name].items() if k not in ("crash_log_tails",)}, default=str)[:600]}')
+        summary = {k: v for k, v in out[name].items() if k != 'crash_log_tails'}
+        log(f'  fuzz {name}: {json.dumps(summary, default=str)[:600]}')
     return out
 
 

@@ -305,8 +305,8 @@ def read_pointcloud2(msg: PointCloud2, fields: Sequence[str] = ('x', 'y', 'z'), 
         return np.ascontiguousarray(rows[:, f.offset:f.offset + dt.itemsize]).view(dt)[:, 0]
 
     x0 = by_name['x'].offset if 'x' in by_name else -1
-    fast = (tuple(fields) == ('x', 'y', 'z') and endian == ('>' if sys.byteorder == 'big'
-                                                             else '<')
+    native = '>' if sys.byteorder == 'big' else '<'
+    fast = (tuple(fields) == ('x', 'y', 'z') and endian == native
             and all(by_name[k].datatype == PointField.FLOAT32
                     and by_name[k].offset == x0 + 4 * i for i, k in enumerate('xyz')))
     if fast:

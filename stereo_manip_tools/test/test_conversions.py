@@ -9,9 +9,10 @@ from std_msgs.msg import Header
 
 from stereo_manip_tools.conversions import (
     camera_info_from_parameters, CameraInfoError, DEFAULT_MAX_ABS_COORDINATE, image_to_numpy,
-    IMAGE_ENCODINGS, MAX_POINTS_RECEIVED, matrices_to_path, matrix_to_pose, ns_to_stamp, numpy_to_image, path_to_matrices,
-    pointcloud2_to_array, PointCloudError, pose_to_matrix, read_pointcloud2, stamp_to_ns, StereoCameraParameters,
-    stereo_parameters_from_camera_info, xyz_to_pointcloud2)
+    IMAGE_ENCODINGS, MAX_POINTS_RECEIVED, matrices_to_path, matrix_to_pose, ns_to_stamp,
+    numpy_to_image, path_to_matrices, pointcloud2_to_array, PointCloudError, pose_to_matrix,
+    read_pointcloud2, stamp_to_ns, StereoCameraParameters, stereo_parameters_from_camera_info,
+    xyz_to_pointcloud2)
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 
