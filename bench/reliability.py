@@ -87,8 +87,17 @@ def run_fuzz(cases_per_node: int, names: List[str], log) -> Dict[str, Any]:
                 log(f'  fuzz {name}: {state["cases"]} cases, {len(results)} bursts, '
                     f'{session.crashes} crashes, '
                     f'{sum(not x.good_ok for x in results)} good inputs missed')
+        large = None
         try:
             run()
+            cloud_topics = [t for t, (cls, _) in target.inputs.items()
+                            if cls.__name__ == 'PointCloud2']
+            if cloud_topics:
+                # bounded work: a 1 M-point random cloud, then the good input
+                from stereo_manip_tools.conversions import xyz_to_pointcloud2
+                P = np.random.default_rng(1).random((1_000_000, 3)) * 2.0 + [-1, -1, 0.2]
+                large = session.run_cycle([(cloud_topics[0], xyz_to_pointcloud2(P))],
+                                          timeout=120.0)
         finally:
             output = session.close()
         missed = [r.reason for r in results if not r.good_ok]
@@ -99,6 +108,9 @@ def run_fuzz(cases_per_node: int, names: List[str], log) -> Dict[str, Any]:
             'warm_up_good_ok': warm.good_ok,
             'seconds_to_good_output': _stats([r.seconds_to_good_output for r in results]),
             'wall_time_s': time.monotonic() - t0,
+            'million_point_cloud': None if large is None else {
+                'crashed': large.crashed, 'good_ok': large.good_ok, 'reason': large.reason,
+                'seconds_to_good_output': large.seconds_to_good_output},
             'crash_log_tails': [c[-1500:] for c in session.crash_logs[:3]],
             'tracebacks_in_output': output.count('Traceback'),
         }
@@ -476,6 +488,11 @@ def goals_of(sections: Dict[str, Any], cases_goal: int) -> List[Dict[str, Any]]:
         goals.append(goal(f'fuzz_{name}_crashes', 0, '==', r['crashes']))
         goals.append(goal(f'fuzz_{name}_good_input_missed_after_burst', 0, '==',
                           r['good_missed_after_burst'] + (0 if r['warm_up_good_ok'] else 1)))
+        big = r.get('million_point_cloud')
+        if big is not None:
+            goals.append(goal(f'fuzz_{name}_seconds_to_good_output_after_1M_point_cloud', 10.0,
+                              '<=', big['seconds_to_good_output'] if big['good_ok']
+                              else float('nan')))
     for name, r in sorted(sections.get('kill', {}).items()):
         v = r['seconds_kill_to_correct_corrected_pose']
         goals.append(goal(f'kill9_{name}_seconds_to_correct_corrected_pose', 10.0, '<=',
