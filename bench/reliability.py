@@ -60,6 +60,10 @@ def _stats(values: List[float]) -> Dict[str, float]:
 
 # --- fuzz -----------------------------------------------------------------------------------
 
+class _FuzzDone(Exception):
+    """Raised in the hypothesis test once enough cases ran (ends the generation)."""
+
+
 def run_fuzz(cases_per_node: int, names: List[str], log) -> Dict[str, Any]:
     from hypothesis import given, HealthCheck, Phase, settings
     from fuzz_targets import TARGETS
@@ -74,12 +78,13 @@ def run_fuzz(cases_per_node: int, names: List[str], log) -> Dict[str, Any]:
         warm = session.run_cycle([], timeout=120.0)
         state = {'cases': 0}
 
-        @settings(max_examples=10 * cases_per_node, deadline=None, database=None,
-                  phases=[Phase.generate], suppress_health_check=list(HealthCheck))
+        @settings(max_examples=cases_per_node + 50, deadline=None, database=None,
+                  phases=[Phase.generate], suppress_health_check=list(HealthCheck),
+                  report_multiple_bugs=False)
         @given(burst=burst_strategy(target, 5, 15))
         def run(burst):
             if state['cases'] >= cases_per_node:
-                return
+                raise _FuzzDone()            # stops hypothesis generating further examples
             r = session.run_cycle(burst)
             results.append(r)
             state['cases'] += r.cases
@@ -89,7 +94,10 @@ def run_fuzz(cases_per_node: int, names: List[str], log) -> Dict[str, Any]:
                     f'{sum(not x.good_ok for x in results)} good inputs missed')
         large = None
         try:
-            run()
+            try:
+                run()
+            except _FuzzDone:
+                pass
             cloud_topics = [t for t, (cls, _) in target.inputs.items()
                             if cls.__name__ == 'PointCloud2']
             if cloud_topics:
