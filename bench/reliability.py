@@ -593,7 +593,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         load[f'{section}_wall_time_s'] = time.monotonic() - t0
         load[f'loadavg_after_{section}'] = os.getloadavg()
     write_report(NAME, goals_of(sections, 1000), directory=out_dir, sections=sections,
-                 runs={**runs, **{s: {'date_utc': time.strftime(
+                 runs=runs if opts.merge else {**runs, **{s: {'date_utc': time.strftime(
                      '%Y-%m-%dT%H:%M:%SZ', time.gmtime()), 'quick': opts.quick,
                      'fuzz_cases_per_node': opts.fuzz_cases, **load} for s in opts.sections}},
                  method=__doc__)
