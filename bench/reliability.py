@@ -569,7 +569,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             else:
                 sections[key] = value
         for key, value in data.get('runs', {}).items():
-            runs[f'{key} ({other})'] = value
+            if key == 'fuzz':
+                key = 'fuzz ' + ', '.join(sorted(data['sections'].get('fuzz', {})))
+            runs[key] = value
     load = {'loadavg_start': os.getloadavg()}
 
     def log(text: str) -> None:
