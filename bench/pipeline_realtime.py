@@ -21,7 +21,9 @@ here), OpenBLAS with one thread per core, the IP modeller's default point budget
 Usage::
 
     ROS_DOMAIN_ID=74 flock -x /work/coord/cpu.lock .venv/bin/python bench/pipeline_realtime.py
-    python bench/pipeline_realtime.py --runs peg_in_hole:10 peg_in_hole:30 --seconds 30
+    python bench/pipeline_realtime.py --runs peg_in_hole:10 peg_in_hole:30 peg_in_hole:10:peer
+    python bench/pipeline_realtime.py --update --runs revolute_pair:10 primitives:10 \
+        primitives:10:peer
 
 Writes ``bench/results/pipeline_realtime.json``.
 """
@@ -29,8 +31,10 @@ Writes ``bench/results/pipeline_realtime.json``.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from pathlib import Path
+import re
 import struct
 import sys
 import time
@@ -38,7 +42,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from stereo_manip_tools.bench_report import goal, write_report
+from stereo_manip_tools.bench_report import goal, results_dir, write_report
 
 # What each scene's graph is judged on: the topic carrying its final output, and the topics
 # whose arrival means "the frame reached the last node's input".
@@ -95,7 +99,10 @@ def graph_specs(scene: str, rate: float, peer: bool) -> list:
     nodes = STAGES[scene]().nodes
     for spec in nodes:
         if spec.executable == 'synthetic_camera':
-            spec.parameters.update(trigger=False, rate=float(rate))
+            # the scene at its own speed (30 fps nominal), played back and forth: motion
+            # stays continuous (a looping scene teleports the peg back to its start)
+            spec.parameters.update(trigger=False, rate=float(rate), playback='bounce',
+                                   frame_step=max(1, int(round(30.0 / rate))))
             spec.remappings.pop('trigger', None)
         if spec.executable == 'stereo_depth_node' and peer:
             spec.parameters.update(min_disparity=0, max_disparity=160, point_decimation=1,
@@ -199,7 +206,12 @@ def run_graph(scene: str, rate: float, seconds: float, peer: bool = False,
                                           for n in cpu0}
         out['cpu_percent_of_one_core']['observer (this benchmark)'] = \
             100.0 * (own1 - own0) / window
-        out['logs_tail'] = {s.node_name: p.output()[-1200:] for s, p in procs}
+        out['logs_tail'] = {s.node_name: p.output()[-1500:] for s, p in procs}
+        stereo_log = next((p.output() for s, p in procs
+                           if s.executable == 'stereo_depth_node'), '')
+        # the stereo node's own figure: wall time per processed pair, per stats period
+        out['stereo_node_ms_per_frame_per_period'] = [
+            float(m) for m in re.findall(r'Hz, ([0-9.]+) ms/frame\)', stereo_log)[1:]]
         out.update(analyse(arrivals, w0_ns, w1_ns, window, scene))
     finally:
         for spec, proc in reversed(procs):
@@ -246,19 +258,53 @@ def analyse(arrivals: Dict[str, List[Tuple[int, int]]], w0_ns: int, w1_ns: int,
     }
 
 
+NOTES = ['latency = receipt time in this observer - header stamp of the stereo pair (stamped '
+         'by the camera after rendering)',
+         'drops before the contact node: camera frames with neither a peg pose nor a peg status '
+         'from the localiser',
+         'cpu_ms_per_output_frame: CPU of the node over the window / its output messages']
+
+# node -> the topic whose messages count its processed frames
+_OUTPUT_OF = {'stereo_depth_node': '/points2'}
+
+
+def cpu_per_frame(run: Dict[str, Any]) -> Dict[str, float]:
+    """CPU [ms] per frame a node put out (a load-independent cost): the stereo node per
+    cloud, the localiser per status of its first object."""
+    out = {}
+    first_object = next((t for t in run['topics'] if t.endswith('/status')), None)
+    for node, pct in run['cpu_percent_of_one_core'].items():
+        topic = _OUTPUT_OF.get(node, first_object if node == 'object_localizer' else None)
+        n = run['topics'].get(topic, {}).get('messages', 0) if topic else 0
+        if n:
+            out[node] = pct / 100.0 * run['window_s'] * 1000.0 / n
+    return out
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--runs', nargs='+',
+    parser.add_argument('--runs', nargs='*',
                         default=['peg_in_hole:10', 'peg_in_hole:30', 'peg_in_hole:10:peer',
-                                 'revolute_pair:10', 'primitives:10'],
+                                 'revolute_pair:10', 'primitives:10', 'primitives:10:peer'],
                         help='scene:rate[:peer] runs, in order')
     parser.add_argument('--seconds', type=float, default=30.0, help='observation window [s]')
     parser.add_argument('--bound-ms', type=float, default=250.0,
                         help='latency bound claimed at 30 Hz (p95 and max of the final output)')
     parser.add_argument('--out-name', default='pipeline_realtime')
+    parser.add_argument('--note', default='',
+                        help='a line for the notes (e.g. how the CPU lock was held)')
+    parser.add_argument('--update', action='store_true',
+                        help='keep the other runs of the existing results file (each exclusive '
+                             'CPU slot stays short: run the scenes in two invocations)')
     opts = parser.parse_args(argv)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     runs: Dict[str, Any] = {}
+    previous = results_dir() / f'{opts.out_name}.json'
+    old_notes: List[str] = []
+    if opts.update and previous.is_file():
+        old = json.loads(previous.read_text())
+        runs.update(old.get('runs', {}))
+        old_notes = [n for n in old.get('notes', []) if n not in NOTES]
     for spec in opts.runs:
         parts = spec.split(':')
         scene, rate, peer = parts[0], float(parts[1]), len(parts) > 2 and parts[2] == 'peer'
@@ -284,6 +330,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         print('     CPU % of one core: ' + ', '.join(
             f'{n} {v:.0f}' for n, v in r['cpu_percent_of_one_core'].items()), flush=True)
 
+    for r in runs.values():
+        if 'error' not in r:
+            r['cpu_ms_per_output_frame'] = cpu_per_frame(r)
     goals = []
     nan = float('nan')
     r10 = runs.get('peg_in_hole@10Hz', {})
@@ -298,16 +347,35 @@ def main(argv: Optional[List[str]] = None) -> int:
                       r30.get('final_latency_ms', {}).get('max', nan)))
     goals.append(goal('peg_in_hole_30hz_corrected_pose_rate_hz', 10.0, '>=',
                       r30.get('final_rate_hz', nan)))
+    ours = runs.get('primitives@10Hz', {}).get('topics', {})
+    peer = runs.get('primitives@10Hz (peer: main configuration)', {}).get('topics', {})
+    ip_topic = '/objects/cube/implicit_polynomial'
+    ip_ours = ours.get(ip_topic, {}).get('latency_ms', {}).get('median', nan)
+    ip_peer = peer.get(ip_topic, {}).get('latency_ms', {}).get('median', nan)
+    goals.append(goal('primitives_ip_fit_latency_median_ratio_vs_peer', 1.0, '<',
+                      ip_ours / ip_peer if ip_peer and ip_peer == ip_peer else nan))
     for scene in ('revolute_pair', 'primitives'):
         r = runs.get(f'{scene}@10Hz', {})
         goals.append(goal(f'{scene}_10hz_{FINAL_TOPIC[scene].strip("/").replace("/", "_")}'
                           '_rate_hz', 10.0, '>=', r.get('final_rate_hz', nan)))
+    comparison = {}
+    for scene in ('peg_in_hole', 'primitives'):
+        a = runs.get(f'{scene}@10Hz', {})
+        p = runs.get(f'{scene}@10Hz (peer: main configuration)', {})
+        if 'topics' in a and 'topics' in p:
+            comparison[scene] = {
+                'final_rate_hz': {'ours': a['final_rate_hz'], 'peer': p['final_rate_hz']},
+                'final_latency_median_ms': {'ours': a['final_latency_ms']['median'],
+                                            'peer': p['final_latency_ms']['median']},
+                'stereo_cpu_ms_per_frame': {
+                    'ours': a['cpu_ms_per_output_frame'].get('stereo_depth_node', nan),
+                    'peer': p['cpu_ms_per_output_frame'].get('stereo_depth_node', nan)},
+                'load_average_1min_end': {'ours': a['load_average_1min']['end'],
+                                          'peer': p['load_average_1min']['end']}}
     write_report(opts.out_name, goals, runs=runs, seconds_per_run=opts.seconds,
+                 comparison_with_peer_same_run=comparison,
                  latency_bound_at_30hz_ms=opts.bound_ms,
-                 notes=['latency = receipt time in this observer - header stamp of the stereo '
-                        'pair (stamped by the camera after rendering)',
-                        'drops before the contact node: camera frames with neither a peg pose '
-                        'nor a peg status from the localiser'])
+                 notes=NOTES + old_notes + ([opts.note] if opts.note else []))
     return 0
 
 

@@ -12,6 +12,13 @@ Publications, one set per ``moving_pose`` message:
   - ``corrected_track`` (nav_msgs/Path): the last ``track_length`` output poses.
 Service ``correct_trajectory`` (stereo_manip_msgs/CorrectTrajectory) corrects a batch.
 
+The relation of each frame is recognised (``recognition`` true: model selection against the
+stated pose noise ``sigma_translation`` / ``sigma_rotation`` and an online temporal model over
+the stream, :class:`contact_correction.trajectory.ContactCorrector`; the service back-tracks
+its whole batch), given (``relation``) or detected per frame with ``tolerance``.
+``contact_state`` and ``corrected_track`` are built only while they have subscribers; the track
+keeps at most ``track_length`` poses.
+
 Bad input (NaN or zero quaternions, no fixed pose yet) is logged with the reason and counted;
 the counts are appended to every ContactState status.
 """
@@ -175,6 +182,7 @@ class ContactCorrectionNode(Node):
                                        'corrected': 0, 'passed_through': 0}
         self.track: deque = deque(maxlen=int(g('track_length').value))
         self.corrector: ContactCorrector | None = None
+        self._units_warned = False
         self._last_stamp: int | None = None
         self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
         self.state_pub = self.create_publisher(ContactState, 'contact_state', 10)
@@ -305,6 +313,13 @@ class ContactCorrectionNode(Node):
         if self.fixed_T is None:
             self._reject('moving_pose', 'no fixed_pose received yet', 'no_fixed_pose')
             return
+        if self.moving is not None and not self._units_warned:
+            dist = float(np.linalg.norm(np.linalg.solve(self.fixed_T, T)[:3, 3]))
+            if dist > 100.0 * max(self.moving.size, 1e-3):
+                self._units_warned = True
+                self.get_logger().warning(
+                    f'moving object {dist:.4g} m from the fixed one ({dist / self.moving.size:.0f}'
+                    'x its size): poses in millimetres? (REP 103: metres; warned once)')
         result = self._correct(T, self.fixed_T, stamp)
         self.counts['corrected' if result.corrected else 'passed_through'] += 1
         if not result.corrected:

@@ -35,7 +35,7 @@ from object_localizer.acquisition import prepare_acquisition_model
 from object_localizer.conversions import cloud_xyz, track_status
 from object_localizer.localization import segment_object_points
 from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
-    SceneCloud, TrackerSettings
+    same_shape, SceneCloud, TrackerSettings
 from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, stamp_to_ns, \
     xyz_to_pointcloud2
@@ -159,6 +159,14 @@ class ObjectLocalizerNode(Node):
             self.track_pubs[name] = self.create_publisher(Path, f'objects/{name}/track', 10)
             self.cloud_pubs[name] = self.create_publisher(PointCloud2, f'objects/{name}/cloud',
                                                           10)
+        for name, tracker in self.trackers.items():
+            tracker.twins = [t for n, t in self.trackers.items()
+                             if n != name and same_shape(tracker.model, t.model)]
+            if tracker.twins:
+                twins = ', '.join(t.model.name for t in tracker.twins)
+                self.get_logger().info(
+                    f'{name} has the same shape as {twins}: it is acquired only near a known '
+                    'pose (initial_poses or the last one)')
         # static objects first: the others are checked against their verified poses
         self._order = sorted(names, key=lambda n: n not in static)
         self.counts = {'received': 0, 'processed': 0, 'dropped_stale': 0, 'rejected': 0,

@@ -48,7 +48,8 @@ from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
 __all__ = ['TrackState', 'TrackerSettings', 'TrackingModel', 'PoseQuality', 'TrackUpdate',
            'SceneCloud', 'prepare_tracking_model', 'predict_constant_velocity', 'track_icp',
-           'check_pose', 'ObjectTracker', 'Acquirer', 'make_acquirer', 'acquire_rough_fine']
+           'check_pose', 'ObjectTracker', 'Acquirer', 'make_acquirer', 'acquire_rough_fine',
+           'same_shape', 'symmetric_distance']
 
 
 class TrackState(enum.IntEnum):
@@ -68,6 +69,7 @@ class TrackerSettings:
     :ivar loss_scale: Tukey M-estimator scale k [m] at the last stage (annealed from 3k).
     :ivar icp_iterations: largest number of ICP iterations per stage.
     :ivar scene_voxel: voxel size [m] the scene crop is down-sampled to for ICP.
+    :ivar max_icp_points: at most this many of those points take part (evenly chosen).
     :ivar inlier_distance: largest distance [m] (along the model normal) of an observed point
         from the model surface for the model sample to count as seen (inlier).
     :ivar min_inlier_fraction: smallest inlier fraction of a published pose.
@@ -87,6 +89,9 @@ class TrackerSettings:
     :ivar max_penetration: a pose that puts more than 10 % of the model's volume deeper than
         this [m] inside another object's verified pose is rejected (physically impossible; the
         typical wrong pose of a part lying on a bigger one).
+    :ivar ambiguity_distance: acquisition results farther apart than this (ADD-S [m]) are
+        distinct solutions; when several pass the check the object is ambiguous (identical
+        parts) and is only published if the last known pose is clearly nearer one of them.
     :ivar static: the object does not move: after a verified pose it is held and re-verified
         every ``static_recheck_period`` [s] (cloud stamps).
     :ivar max_history: accepted poses kept in :attr:`ObjectTracker.history` (bounded).
@@ -97,6 +102,7 @@ class TrackerSettings:
     loss_scale: float = 0.0015
     icp_iterations: int = 30
     scene_voxel: float = 0.003
+    max_icp_points: int = 2500
     inlier_distance: float = 0.003
     min_inlier_fraction: float = 0.5
     max_visible_residual: float = 0.0015
@@ -106,6 +112,7 @@ class TrackerSettings:
     min_view_cos: float = 0.3
     min_visible_samples: int = 30
     max_penetration: float = 0.005
+    ambiguity_distance: float = 0.005
     static: bool = False
     static_recheck_period: float = 1.0
     max_history: int = 300
@@ -135,6 +142,8 @@ class TrackingModel:
     solid: o3d.t.geometry.RaycastingScene
     interior: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     mesh: Optional[PolygonMesh] = None
+    box_min: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    box_max: np.ndarray = field(default_factory=lambda: np.zeros(3))
     acquisition: Any = None       # object_localizer.acquisition.AcquisitionModel, built lazily
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
@@ -158,7 +167,8 @@ def prepare_tracking_model(mesh: PolygonMesh, voxel_size: float = 0.003,
     solid = o3d.t.geometry.RaycastingScene()
     solid.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.asarray(mesh.triangles(), dtype=np.uint32)))
-    model = TrackingModel(mesh.name, template, P, N, centre, radius, probe, solid, mesh=mesh)
+    model = TrackingModel(mesh.name, template, P, N, centre, radius, probe, solid, mesh=mesh,
+                          box_min=P.min(axis=0), box_max=P.max(axis=0))
     box = np.random.default_rng(seed).uniform(P.min(axis=0), P.max(axis=0), size=(4000, 3))
     model.interior = box[model.signed_distance(box) < 0][:400]
     return model
@@ -183,6 +193,26 @@ def mean_displacement(model: TrackingModel, pose_a: np.ndarray, pose_b: np.ndarr
     """Mean distance [m] between the model's probe points placed by two poses (ADD)."""
     d = model.probe @ (pose_a[:3, :3] - pose_b[:3, :3]).T + (pose_a[:3, 3] - pose_b[:3, 3])
     return float(np.mean(np.linalg.norm(d, axis=1)))
+
+
+def symmetric_distance(model: TrackingModel, pose_a: np.ndarray, pose_b: np.ndarray) -> float:
+    """ADD-S [m] between two poses of the model (its probe points): about 0 for poses that are
+    equivalent under the model's symmetries."""
+    from scipy.spatial import cKDTree
+
+    A = model.probe @ pose_a[:3, :3].T + pose_a[:3, 3]
+    B = model.points @ pose_b[:3, :3].T + pose_b[:3, 3]
+    return float(np.mean(cKDTree(B).query(A)[0]))
+
+
+def same_shape(a: TrackingModel, b: TrackingModel, tolerance: float = 0.001) -> bool:
+    """Whether two models are the same part (sorted bounding-box extents equal within
+    ``tolerance`` [m] and surface sample counts within 2 %): acquisition cannot tell them
+    apart by geometry."""
+    ea = np.sort(a.box_max - a.box_min)
+    eb = np.sort(b.box_max - b.box_min)
+    return bool(np.all(np.abs(ea - eb) <= tolerance)
+                and abs(len(a.points) - len(b.points)) <= 0.02 * max(len(a.points), 1))
 
 
 def predict_constant_velocity(model: TrackingModel, history: Tuple[Tuple[int, np.ndarray], ...],
@@ -397,6 +427,10 @@ def track_icp(model: TrackingModel, near_points: np.ndarray, start: np.ndarray,
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near_points))
     if s.scene_voxel > 0:
         src = src.voxel_down_sample(s.scene_voxel)
+    if len(src.points) > s.max_icp_points:     # big objects: a fixed, even share of the crop
+        step = len(src.points) / s.max_icp_points
+        src = src.select_by_index(np.floor(np.arange(s.max_icp_points) * step).astype(int)
+                                  .tolist())
     pose = np.asarray(start, dtype=float).copy()
     criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, s.icp_iterations)
     for scale, reach in ((3.0 * s.loss_scale, 2.0 * s.max_distance),
@@ -444,8 +478,8 @@ def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int) -> l
     return [localize(model.template, P[np.all(np.isfinite(P), axis=1)], seed=seed).pose]
 
 
-def make_acquirer(method: str, max_candidates: int = 8,
-                  time_budget_s: float = 0.3) -> Acquirer:
+def make_acquirer(method: str, max_candidates: int = 6,
+                  time_budget_s: float = 0.0) -> Acquirer:
     """The global acquisition of ``object_localizer.acquisition`` (``'ppf'``: point-pair-feature
     voting, ``'fpfh'``: FPFH + RANSAC, both with visibility verification) as an
     :data:`Acquirer`: its best ``max_candidates`` hypotheses, refined or not, best first (the
@@ -480,6 +514,8 @@ class ObjectTracker:
     state: TrackState = TrackState.ACQUIRING
     history: Deque[Tuple[int, np.ndarray]] = field(default_factory=deque)
     hint: Optional[np.ndarray] = None
+    reference: Optional[np.ndarray] = None     # the last known pose (hint or before a loss)
+    twins: list = field(default_factory=list)  # trackers of parts with the same shape
     lost_count: int = 0
     acquisitions: int = 0
     _last_check_ns: Optional[int] = None
@@ -491,6 +527,7 @@ class ObjectTracker:
         verified like any pose before it is published."""
         self.history.clear()
         self.hint = None if pose is None else np.asarray(pose, dtype=float).copy()
+        self.reference = self.hint
         self.state = TrackState.ACQUIRING
         self._last_check_ns = None
 
@@ -509,6 +546,10 @@ class ObjectTracker:
         centre = start[:3, :3] @ m.centre + start[:3, 3]
         cone = scene.cone(centre, reach)
         near = cone[np.einsum('ij,ij->i', cone - centre, cone - centre) <= reach * reach]
+        # then the model's bounding box at the start pose, grown by the ICP reach
+        local = (near - start[:3, 3]) @ start[:3, :3]
+        margin = 2.0 * s.max_distance
+        near = near[np.all((local >= m.box_min - margin) & (local <= m.box_max + margin), axis=1)]
         if len(near) < 10:
             return start, PoseQuality(reason=f'only {len(near)} scene points near the pose')
         pose = track_icp(m, near, start, s)
@@ -587,16 +628,72 @@ class ObjectTracker:
             hint_reason = prefix
         self.acquisitions += 1
         best: Optional[Tuple[np.ndarray, PoseQuality]] = None
+        passed: list = []
         for candidate in self.acquirer(self.model, scene.points, s.seed + self.acquisitions):
             pose, q = self._refine_and_check(scene, np.asarray(candidate, dtype=float), None)
             if q.passed:
-                return self._start(stamp_ns, pose, q, hint_reason + 'acquired', acquired=True)
-            if best is None or q.quality > best[1].quality:
+                passed.append((pose, q))
+            elif best is None or q.quality > best[1].quality:
                 best = (pose, q)
         state = TrackState.LOST if self.state == TrackState.LOST else TrackState.ACQUIRING
-        why = best[1].reason if best is not None else 'no candidate'
-        return TrackUpdate(None, state, best[1] if best else None,
-                           f'{hint_reason}acquisition failed: {why}')
+        if not passed:
+            why = best[1].reason if best is not None else 'no candidate'
+            return TrackUpdate(None, state, best[1] if best else None,
+                               f'{hint_reason}acquisition failed: {why}')
+        # distinct solutions (not equivalent under the model's symmetries: ADD-S > 5 mm)
+        distinct: list = []
+        for pose, q in sorted(passed, key=lambda pq: -pq[1].quality):
+            if all(symmetric_distance(self.model, pose, d[0]) > s.ambiguity_distance
+                   for d in distinct):
+                distinct.append((pose, q))
+        twins = [t.known_pose() for t in self.twins if t.known_pose() is not None]
+        if self.twins:
+            # an identical part elsewhere: only a known pose of this one tells which is which
+            if self.reference is None:
+                return TrackUpdate(None, state, distinct[0][1], hint_reason + (
+                    f'ambiguous: the same shape as {", ".join(t.model.name for t in self.twins)}'
+                    '; an initial pose (hint) is needed to tell them apart; not published'))
+            if len(distinct) >= 2 and len(twins) == 1:
+                # two parts, two known poses: the assignment with the smaller total distance,
+                # if it is clearly (by 20 %) better than the swapped one
+                def cost(d, ref):
+                    return mean_displacement(self.model, d[0], ref)
+                pairs = sorted(((cost(a, self.reference) + cost(b, twins[0]), i)
+                                for i, a in enumerate(distinct)
+                                for j, b in enumerate(distinct) if i != j))
+                best_i = pairs[0][1]
+                swapped = min(c for c, i in pairs if i != best_i)
+                distinct = [distinct[best_i]] if pairs[0][0] < 0.8 * swapped else []
+            else:
+                distinct = [d for d in distinct if all(
+                    mean_displacement(self.model, d[0], self.reference)
+                    < mean_displacement(self.model, d[0], other) for other in twins)]
+            if not distinct:
+                return TrackUpdate(None, state, passed[0][1], hint_reason + (
+                    'ambiguous: every pose that fits is nearer the known pose of an identical '
+                    'part; not published'))
+        if len(distinct) == 1 and not self.twins:
+            pose, q = distinct[0]
+            return self._start(stamp_ns, pose, q, hint_reason + 'acquired', acquired=True)
+        # several places fit (or an identical part exists): only a reference (the last
+        # verified pose or the hint) may choose, and only when it is clearly nearer one
+        if self.reference is not None:
+            dist = [mean_displacement(self.model, d[0], self.reference) for d in distinct]
+            order = np.argsort(dist)
+            if len(distinct) == 1 or dist[order[0]] < 0.5 * dist[order[1]]:
+                pose, q = distinct[order[0]]
+                return self._start(stamp_ns, pose, q, hint_reason + (
+                    f'acquired ({len(distinct)} distinct pose(s) fit; the one nearest the last '
+                    'known pose)'), acquired=True)
+        gaps = [symmetric_distance(self.model, d[0], distinct[0][0]) for d in distinct[1:]]
+        return TrackUpdate(None, state, distinct[0][1], f'{hint_reason}ambiguous: '
+                           f'{len(distinct)} distinct poses fit the cloud '
+                           f'({1e3 * min(gaps):.0f} mm or more apart) and no known pose tells '
+                           'them apart; not published')
+
+    def known_pose(self) -> Optional[np.ndarray]:
+        """The last verified pose, else the last known one (hint, pose before a loss)."""
+        return self.history[-1][1] if self.history else self.reference
 
     def _start(self, stamp_ns: int, pose: np.ndarray, q: PoseQuality, reason: str,
                acquired: bool = False) -> TrackUpdate:
@@ -608,6 +705,8 @@ class ObjectTracker:
 
     def _lose(self, q: PoseQuality, reason: str) -> TrackUpdate:
         self.lost_count += 1
+        if self.history:
+            self.reference = self.history[-1][1]
         self.history.clear()
         self.state = TrackState.LOST
         return TrackUpdate(None, TrackState.LOST, q, reason, lost=True)

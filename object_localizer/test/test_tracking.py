@@ -194,3 +194,48 @@ def test_unusable_clouds_raise_clear_errors(arm):
         tracker.update(np.zeros((10, 2)), 0)
     with pytest.raises(ValueError, match='finite points'):
         tracker.update(np.full((50, 3), np.nan), 0)
+
+
+def test_identical_parts_are_told_apart_only_by_a_known_pose():
+    """link_base and link_arm are the same brick: acquisition from nothing cannot tell which is
+    which, so nothing is published; with hints (even 5 mm off) each gets its own brick."""
+    from object_localizer.tracking import same_shape
+    meshes = {n: load_obj(find_model(n)) for n in ('link_base', 'link_arm')}
+    models = {n: prepare_tracking_model(m) for n, m in meshes.items()}
+    assert same_shape(models['link_base'], models['link_arm'])
+    assert not same_shape(models['link_base'], prepare_tracking_model(load_obj(find_model(
+        'peg'))))
+    truth = {'link_base': make_transform(rotation_about_axis([1, 0, 0], 2.2), [-0.06, 0, 0.6]),
+             'link_arm': make_transform(rotation_about_axis([1, 0.2, 0], 2.0), [0.08, 0.02, 0.62])}
+    rng = np.random.default_rng(11)
+    cloud = np.vstack([sample_visible_surface(meshes[n], T, 8000, seed=i)
+                       for i, (n, T) in enumerate(truth.items())])
+    cloud = cloud + rng.normal(scale=0.0005, size=cloud.shape)
+
+    def both_bricks(model, points, seed):       # what a global search returns: either brick
+        other = 'link_arm' if model.name == 'link_base' else 'link_base'
+        # the other brick's pose expressed for this model (same shape, different origin)
+        return [truth[other] @ _origin_shift(models[other], model), truth[model.name]]
+
+    for hinted in (False, True):
+        trackers = {n: ObjectTracker(models[n], TrackerSettings(), acquirer=both_bricks)
+                    for n in truth}
+        for n, t in trackers.items():
+            t.twins = [o for m, o in trackers.items() if m != n]
+            if hinted:   # 40 mm off: rejected as a pose, still nearer its own brick
+                t.reset(make_transform(np.eye(3), [0.0, 0.04, 0.0]) @ truth[n])
+        others = []
+        for n, t in trackers.items():
+            res = t.update(cloud, 0, others)
+            if not hinted:
+                assert res.pose is None and 'ambiguous' in res.reason, res.reason
+            else:
+                assert res.pose is not None and 'initial pose rejected' in res.reason, res.reason
+                assert add_s(res.pose, truth[n], models[n].points) < 0.001
+                others.append((models[n], res.pose))
+
+
+def _origin_shift(from_model, to_model):
+    """Transform taking to_model's frame to from_model's frame for two identical boxes whose
+    origins differ (both axis-aligned with the same extents): matches the box corners."""
+    return make_transform(np.eye(3), from_model.box_min - to_model.box_min)

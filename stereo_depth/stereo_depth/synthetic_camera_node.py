@@ -44,10 +44,24 @@ from stereo_depth.synthetic import (
     load_motorcycle, load_stereo_files, RealStereoPair, RenderOptions, SCENES, StereoCamera,
     SyntheticStereo)
 
-__all__ = ['SyntheticCameraNode', 'main', 'SOURCES', 'ENCODINGS']
+__all__ = ['SyntheticCameraNode', 'main', 'SOURCES', 'ENCODINGS', 'PLAYBACKS', 'scene_frame']
 
 SOURCES = ('synthetic', 'motorcycle', 'files')
 ENCODINGS = ('mono8', 'rgb8')
+PLAYBACKS = ('loop', 'bounce')
+
+
+def scene_frame(count: int, n_frames: int, playback: str) -> int:
+    """Scene frame shown at the ``count``-th advanced frame index.
+
+    ``loop`` returns ``count`` (the scene wraps it around itself); ``bounce`` runs 0, 1, ...,
+    n-1, n-2, ..., 1, 0, 1, ... (a triangle wave with period 2 (n - 1)).
+    """
+    if playback == 'loop' or n_frames < 2:
+        return int(count)
+    period = 2 * (n_frames - 1)
+    k = int(count) % period
+    return k if k < n_frames else period - k
 
 
 def _float_range(lo: float, hi: float) -> List[FloatingPointRange]:
@@ -75,6 +89,9 @@ _PARAMS = {
     'frame_step': (1, 'Scene frames advanced per published frame (1 = the scene at its own '
                       'fps when rate matches it; > 1 plays it faster, like a time lapse).',
                    {'integer_range': _int_range(1, 1000)}),
+    'playback': ('loop', 'Scene playback past its last frame: loop (jump back to frame 0, '
+                         'as the scene defines) or bounce (play backwards, then forwards again: '
+                         'the motion stays continuous, no jump for a tracker to lose).', {}),
     'width': (640, 'Image width [px] (synthetic).', {'integer_range': _int_range(16, 4096)}),
     'height': (480, 'Image height [px] (synthetic).', {'integer_range': _int_range(16, 4096)}),
     'fx': (600.0, 'Focal length [px], both axes (synthetic and files sources; > 0).',
@@ -115,6 +132,8 @@ def validate_parameter(name: str, value, current: Dict[str, object]) -> Optional
         return f'unknown source {value!r}; choose one of: {", ".join(SOURCES)}'
     if name == 'scene' and value not in SCENES:
         return f'unknown scene {value!r}; choose one of: {", ".join(SCENES)}'
+    if name == 'playback' and value not in PLAYBACKS:
+        return f'unknown playback {value!r}; choose one of: {", ".join(PLAYBACKS)}'
     if name == 'encoding' and value not in ENCODINGS:
         return f'unsupported encoding {value!r}; choose one of: {", ".join(ENCODINGS)}'
     if name == 'rate' and not (math.isfinite(value) and value > 0):
@@ -279,7 +298,8 @@ class SyntheticCameraNode(Node):
         enc = str(v['encoding'])
         truth = None
         if self._source is not None:
-            left, right, truth = self._source.render(self._frame)
+            left, right, truth = self._source.render(scene_frame(
+                self._frame, self._source.scene.n_frames, str(v['playback'])))
             disparity, depth, occ = truth['disparity'], truth['depth'], truth['occlusion']
             f, baseline = self._source.camera.fx, self._source.camera.baseline
         else:

@@ -177,3 +177,13 @@ def test_node_files_source_and_ground_truth_switch(ros_node, tmp_path):
         assert not res.successful and 'left_file' in res.reason
     finally:
         cam.destroy_node()
+
+
+def test_bounce_playback_is_continuous_and_loop_wraps():
+    from stereo_depth.synthetic_camera_node import scene_frame, validate_parameter
+    frames = [scene_frame(k, 5, 'bounce') for k in range(13)]
+    assert frames == [0, 1, 2, 3, 4, 3, 2, 1, 0, 1, 2, 3, 4]
+    assert all(abs(a - b) == 1 for a, b in zip(frames, frames[1:]))
+    assert [scene_frame(k, 5, 'loop') for k in (0, 4, 5, 7)] == [0, 4, 5, 7]  # scene wraps
+    assert scene_frame(9, 1, 'bounce') == 9
+    assert 'playback' in validate_parameter('playback', 'reverse', {})

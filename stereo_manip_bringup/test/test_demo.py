@@ -26,6 +26,66 @@ def test_line_errors():
     assert dist == pytest.approx(0.003)
 
 
+def _pose_msg(stamp_ns, T):
+    from stereo_manip_tools.conversions import matrix_to_pose_stamped, ns_to_stamp
+    from std_msgs.msg import Header
+    return matrix_to_pose_stamped(T, Header(stamp=ns_to_stamp(stamp_ns)))
+
+
+def test_object_poses_are_scored_and_unflagged_wrong_poses_counted():
+    from stereo_manip_msgs.msg import TrackStatus
+    from stereo_manip_tools.conversions import ns_to_stamp
+    from stereo_manip_tools.transforms import make_transform
+    truth = make_transform(np.eye(3), [0.0, 0.0, 0.5])
+    off = lambda dx: make_transform(np.eye(3), [dx, 0.0, 0.5])  # noqa: E731
+    stamps = [10, 20, 30, 40, 50]
+    data = {'/objects/peg/pose_truth': [(s, _pose_msg(s, truth)) for s in stamps],
+            # 20: 1 mm off; 30: 100 mm off (wrong), 40: 100 mm off but LOST; 50: no pose
+            '/objects/peg/pose': [(10, _pose_msg(10, truth)), (20, _pose_msg(20, off(0.001))),
+                                  (30, _pose_msg(30, off(0.1))),
+                                  (40, _pose_msg(40, off(0.1)))],
+            '/objects/peg/status': []}
+    for s, state in ((10, 1), (20, 1), (30, 1), (40, 2), (50, 2)):
+        st = TrackStatus(object_name='peg', state=state)
+        st.header.stamp = ns_to_stamp(s)
+        data['/objects/peg/status'].append((s, st))
+    r = demo.score_object_poses(data, 'peg')
+    assert (r['camera_frames'], r['with_pose'], r['no_pose'], r['no_pose_flagged']) == \
+        (5, 4, 1, 1)
+    assert r['beyond_error'] == 2 and r['wrong_unflagged'] == 1
+    from object_localizer.evaluation import add_s
+    pts = demo._model_points('peg')
+    errs = [0.0, add_s(off(0.001), truth, pts), add_s(off(0.1), truth, pts),
+            add_s(off(0.1), truth, pts)]
+    assert 0 < errs[1] <= 0.001 and errs[2] > 0.005
+    assert r['add_s_mm']['median'] == pytest.approx(1000 * np.median(errs))
+    assert r['add_s_mm']['max'] == pytest.approx(1000 * errs[2])
+    r = demo.score_object_poses(data, 'peg', window=(15, 35))
+    assert r['camera_frames'] == 2 and r['wrong_unflagged'] == 1
+    assert demo.unflagged_wrong_poses({'poses': {'peg': r}}) == 1
+    del data['/objects/peg/status']          # no status at all: nothing is flagged
+    assert demo.score_object_poses(data, 'peg')['wrong_unflagged'] == 2
+
+
+def test_peg_phases_cover_the_insertion_in_order():
+    rel, names = demo._peg_phases()
+    order = [p for k, p in enumerate(names) if k == 0 or names[k - 1] != p]
+    assert order == list(demo.PEG_PHASES)
+    assert demo._phase_of(rel[0], (rel, names)) == 'approach'
+    assert demo._phase_of(rel[-1], (rel, names)) == 'inserted'
+
+
+def test_live_figures_count_missing_frames_and_latency():
+    receipts = {'/cam': [(s, s + 1_000_000) for s in (100, 200, 300, 400)],
+                '/out': [(100, 100 + 50_000_000), (300, 300 + 70_000_000),
+                         (300, 300 + 90_000_000)]}
+    live = demo.live_figures(receipts, (100, 300), '/cam', ['/out'])
+    assert live['camera_frames'] == 3
+    out = live['/out']
+    assert out['frames_missing'] == 1
+    assert out['latency_ms']['median'] == pytest.approx(60.0)   # first receipt per stamp
+
+
 @pytest.mark.parametrize('name', list(demo.STAGES))
 def test_every_stage_names_installed_executables(name):
     stage = demo.STAGES[name]()

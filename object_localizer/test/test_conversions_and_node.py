@@ -1,0 +1,101 @@
+"""Message conversions and the node in-process (rclpy, no separate process)."""
+
+import numpy as np
+import pytest
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+
+from object_localizer.conversions import cloud_xyz, track_status
+from object_localizer.evaluation import sample_visible_surface
+from object_localizer.tracking import PoseQuality, TrackState
+from stereo_manip_msgs.msg import TrackStatus
+from stereo_manip_tools.conversions import ns_to_stamp, pointcloud2_to_array, xyz_to_pointcloud2
+from stereo_manip_tools.mesh_io import find_model, load_obj
+from stereo_manip_tools.transforms import make_transform, rotation_about_axis
+
+
+def test_cloud_xyz_fast_path_equals_the_shared_reader():
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(500, 3)).astype(np.float32)
+    P[7] = np.nan
+    msg = xyz_to_pointcloud2(P, rgb=rng.integers(0, 255, (500, 3)))   # x y z rgb, step 16
+    got = cloud_xyz(msg)
+    assert got.dtype == np.float32 and got.shape == (500, 3)
+    assert np.array_equal(got, P, equal_nan=True)          # NaN rows kept (organised clouds)
+    finite = pointcloud2_to_array(msg)
+    assert np.allclose(got[np.isfinite(got[:, 2])], finite)
+
+
+def test_cloud_xyz_other_layouts_and_bad_data():
+    P = np.arange(30, dtype=np.float64).reshape(10, 3)
+    fields = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1)
+              for i, n in enumerate('xyz')]
+    msg = PointCloud2(height=1, width=10, point_step=24, row_step=240, fields=fields,
+                      data=P.tobytes())
+    assert np.allclose(cloud_xyz(msg), P)                   # float64: the shared reader
+    short = xyz_to_pointcloud2(P)
+    short.data = bytes(short.data)[:50]
+    with pytest.raises(ValueError, match='bytes'):
+        cloud_xyz(short)
+    no_z = PointCloud2(height=1, width=10, point_step=16, fields=fields[:2], data=b'\0' * 160)
+    with pytest.raises(ValueError, match="no field 'z'"):
+        cloud_xyz(no_z)
+
+
+def test_track_status_fields():
+    q = PoseQuality(inlier_fraction=0.9, visible_residual=0.0007, prediction_error=0.002,
+                    quality=0.8, passed=True)
+    header = Header(frame_id='cam', stamp=ns_to_stamp(5))
+    msg = track_status(header, 'peg', TrackState.TRACKING, q, 'tracking')
+    assert msg.state == TrackStatus.TRACKING and msg.object_name == 'peg'
+    assert msg.header == header and msg.reason == 'tracking'
+    assert msg.inlier_fraction == pytest.approx(0.9) and msg.quality == pytest.approx(0.8)
+    assert msg.visible_residual == pytest.approx(0.0007)
+    none = track_status(header, 'peg', TrackState.ACQUIRING, None, 'acquisition failed')
+    assert none.quality == 0.0 and none.state == TrackStatus.ACQUIRING
+
+
+def test_node_builds_segment_and_path_only_for_subscribers(ros_node):
+    """In-process node: with nobody on objects/<name>/cloud and track, neither is built; with a
+    subscriber both are published. A status is published for every processed cloud."""
+    from rclpy.parameter import Parameter
+    from object_localizer.localizer_node import ObjectLocalizerNode
+    from stereo_manip_tools.testing import spin_until
+
+    arm = load_obj(find_model('link_arm'))
+    T = make_transform(rotation_about_axis([0.2, 1.0, 0.1], 0.9), [0.03, -0.02, 0.7])
+    points = sample_visible_surface(arm, T, 8000, seed=7)
+    node = ObjectLocalizerNode(context=ros_node.context, parameter_overrides=[
+        Parameter('models', value=['link_arm'])])
+    built = {'cloud': 0, 'track': 0}
+    for kind, pubs in (('cloud', node.cloud_pubs), ('track', node.track_pubs)):
+        original = pubs['link_arm'].publish
+
+        def counting(msg, kind=kind, original=original):
+            built[kind] += 1
+            original(msg)
+        pubs['link_arm'].publish = counting
+    statuses = []
+    ros_node.create_subscription(TrackStatus, '/objects/link_arm/status', statuses.append, 10)
+    try:
+        for k in range(2):
+            header = Header(frame_id='stereo_left_optical', stamp=ns_to_stamp(k * 100_000_000))
+            n0 = len(statuses)
+            node._on_cloud(xyz_to_pointcloud2(points, header))
+            assert spin_until([ros_node, node], lambda: len(statuses) > n0, 60)
+            if k == 0:
+                assert built == {'cloud': 0, 'track': 0}
+                ros_node.create_subscription(PointCloud2, '/objects/link_arm/cloud',
+                                             lambda m: None, 10)
+                from nav_msgs.msg import Path
+                ros_node.create_subscription(Path, '/objects/link_arm/track', lambda m: None,
+                                             10)
+                spin_until([ros_node, node], lambda: node.cloud_pubs['link_arm']
+                           .get_subscription_count() > 0 and node.track_pubs['link_arm']
+                           .get_subscription_count() > 0, 10)
+        # (published by the worker thread just after the status)
+        assert spin_until([ros_node, node], lambda: built == {'cloud': 1, 'track': 1}, 10), built
+        assert [s.state for s in statuses] == [TrackStatus.TRACKING] * 2
+        assert node.counts['processed'] == 2 and node.counts['published'] == 2
+    finally:
+        node.destroy_node()
