@@ -18,10 +18,15 @@ Methods, all on the same clouds in this run:
 
 Error: symmetry-aware (object_localizer.symmetry): centroid translation error and the smallest
 rotation error over the model's symmetry group (continuous axes included); success = within
-2 mm and 2 deg. ADD-S is reported as well. Times: wall time per object including the scene
-preparation (down-sampling, normals, plane removal, observed depth) that a multi-object search
-would share. Accuracy runs may use the shared CPU lock; ``--timing-only`` re-times a subset
-(run it under the exclusive lock) and merges its times into the existing JSON.
+2 mm and 2 deg. ADD-S is reported as well. ``link_base`` and ``link_arm`` are the same brick
+(identical meshes up to their frames): in the revolute scene, a pose on the other brick is a
+correct detection of that shape that no method can attribute from geometry alone, so those two
+are scored against the nearer of the two truths (``success``); ``success_strict`` scores
+against the named object only, and both rates are reported. Times: wall time per object
+including the scene preparation (down-sampling, normals, plane removal, observed depth) that a
+multi-object search would share. Accuracy runs may use the shared CPU lock (their times are
+then inflated by the load); ``--timing-only N`` re-times N trials (run it under the exclusive
+lock) and merges those times into the existing JSON; the time goal uses them when present.
 
 Writes bench/results/localizer_acquisition.json. Clouds are cached in ``--cache`` (not
 committed; rebuilt in a few minutes).
@@ -51,6 +56,16 @@ SCENES = ('peg_in_hole', 'peg_in_slot', 'revolute_pair', 'prismatic_pair', 'sphe
           'primitives')
 METHODS = ('ppf', 'fpfh', 'localize', 'open3d_fpfh_ransac')
 TOL_T, TOL_R = 0.002, np.radians(2.0)
+# link_base and link_arm are the same 0.128 x 0.032 x 0.0192 brick; their frames differ by a
+# shift: link_base's origin is the centre of its top face, link_arm's the centre of its bottom
+# face 0.016 m from one end (make_models._joint_models): the same brick point has coordinates
+# p_arm = p_base + (0.048, 0, 0.0192). TWIN_OFFSET[(twin, name)] maps name's frame into twin's.
+TWINS = {'link_base': ('link_arm',), 'link_arm': ('link_base',)}
+TWIN_OFFSET = {
+    ('link_arm', 'link_base'): np.array([[1, 0, 0, 0.048], [0, 1, 0, 0],
+                                         [0, 0, 1, 0.0192], [0, 0, 0, 1.0]]),
+    ('link_base', 'link_arm'): np.array([[1, 0, 0, -0.048], [0, 1, 0, 0],
+                                         [0, 0, 1, -0.0192], [0, 0, 0, 1.0]])}
 
 
 def stereo_frames(cache: Path, frames_per_scene: int):
@@ -110,7 +125,7 @@ def run_method(method, model, points, camera, seed):
     t0 = time.perf_counter()
     if method in ('ppf', 'fpfh'):
         scene = prepare_acquisition_scene(points, camera=camera)
-        hyps = acquire_object(model, scene, method=method, seed=seed)
+        hyps = acquire_object(model, scene, method=method, seed=seed, time_budget_s=float('inf'))
         pose = hyps[0].pose if hyps else np.eye(4)
         score = hyps[0].score if hyps else 0.0
     elif method == 'localize':
@@ -132,6 +147,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--frames', type=int, default=14, help='frames per scene')
     parser.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS)
+    parser.add_argument('--strides', nargs='+', type=int, default=[1, 6, 21, 3],
+                        help='per method (order of --methods): run it on every k-th trial '
+                             '(the FPFH-based searches take 10-70 s per trial on the full '
+                             'stereo clouds of a loaded 2-core machine)')
     parser.add_argument('--cache', type=Path,
                         default=Path(os.environ.get('TMPDIR', '/tmp')) / 'localizer_acq_cache')
     parser.add_argument('--timing-only', type=int, default=0, metavar='N',
@@ -141,7 +160,7 @@ def main() -> None:
     args = parser.parse_args()
 
     models, symmetries, sym_sets = {}, {}, {}
-    trials = []
+    trials, poses_of = [], []
     for scene_name, seed, frame, pts, camera, poses in stereo_frames(args.cache, args.frames):
         for name, T in poses.items():
             if name not in models:
@@ -151,41 +170,58 @@ def main() -> None:
                 symmetries[name] = find_symmetries(s.points, s.spacing)
                 sym_sets[name] = symmetries[name].rotation_set()
             trials.append((scene_name, seed, frame, name, pts, camera, T))
-    print(f'{len(trials)} trials on {len(trials) // 2} clouds', flush=True)
+            poses_of.append(poses)
+    n_clouds = len({(t[0], t[1], t[2]) for t in trials})
+    print(f'{len(trials)} trials on {n_clouds} clouds', flush=True)
+    strides = dict(zip(args.methods, args.strides + [1] * len(args.methods)))
     if args.timing_only:
         return timing_only(args, trials, models)
     records = []
     for i, (scene_name, seed, frame, name, pts, camera, T) in enumerate(trials):
         rec = {'scene': scene_name, 'seed': seed, 'frame': frame, 'object': name}
         for method in args.methods:
+            if i % strides[method]:
+                continue
             pose, dt, score = run_method(method, models[name], pts, camera, i)
             e_t, e_r = symmetric_pose_error(pose, T, symmetries[name], sym_sets[name])
+            strict = bool(e_t <= TOL_T and e_r <= TOL_R)
+            for twin in TWINS.get(name, ()):
+                if twin in poses_of[i]:
+                    # the twin's truth, expressed for this model's frame
+                    Tt = poses_of[i][twin] @ TWIN_OFFSET[(twin, name)]
+                    et2, er2 = symmetric_pose_error(pose, Tt, symmetries[name], sym_sets[name])
+                    if max(et2 / TOL_T, er2 / TOL_R) < max(e_t / TOL_T, e_r / TOL_R):
+                        e_t, e_r = et2, er2
             rec[method] = {'t_err_m': e_t, 'r_err_deg': float(np.degrees(e_r)),
                            'add_s_m': add_s(pose, T, models[name].template.points),
-                           'time_s': dt, 'score': score,
+                           'time_s': dt, 'score': score, 'success_strict': strict,
                            'success': bool(e_t <= TOL_T and e_r <= TOL_R)}
         records.append(rec)
         print(i, scene_name, frame, name, {m: (round(rec[m]['t_err_m'] * 1000, 2),
                                                round(rec[m]['r_err_deg'], 2),
                                                round(rec[m]['time_s'], 3))
-                                           for m in args.methods}, flush=True)
+                                           for m in args.methods if m in rec}, flush=True)
     summary = {}
     for method in args.methods:
-        rs = [r[method] for r in records]
+        rs = [r[method] for r in records if method in r]
         summary[method] = {
+            'trials': len(rs), 'trial_stride': strides[method],
             'success_rate': float(np.mean([r['success'] for r in rs])),
+            'success_rate_strict_names': float(np.mean([r['success_strict'] for r in rs])),
             'translation_error_m': stats([r['t_err_m'] for r in rs]),
             'rotation_error_deg': stats([r['r_err_deg'] for r in rs]),
             'add_s_m': stats([r['add_s_m'] for r in rs]),
             'time_s': stats([r['time_s'] for r in rs]),
             'failures': [{k: r[k] for k in ('scene', 'seed', 'frame', 'object')}
                          | {'t_err_m': r[method]['t_err_m'], 'r_err_deg': r[method]['r_err_deg']}
-                         for r in records if not r[method]['success']],
+                         for r in records if method in r and not r[method]['success']],
         }
     per_object = {}
     for name in models:
         per_object[name] = {m: float(np.mean([r[m]['success'] for r in records
-                                              if r['object'] == name])) for m in args.methods}
+                                              if r['object'] == name and m in r]))
+                            for m in args.methods
+                            if any(r['object'] == name and m in r for r in records)}
     write(args, records, summary, per_object, timing=None)
 
 
@@ -198,11 +234,20 @@ def write(args, records, summary, per_object, timing):
         goal(f'{best}_time_per_object_median_s', 0.5, '<=', timing_src[best]['median']),
         goal('trials', 200, '>=', len(records)),
     ]
-    if 'open3d_fpfh_ransac' in summary:
-        goals.append(goal(f'{best}_success_rate_minus_open3d_fpfh_ransac', 0.0, '>',
-                          summary[best]['success_rate']
-                          - summary['open3d_fpfh_ransac']['success_rate']))
+    paired = {}
+    for peer in summary:
+        if peer == best:
+            continue
+        both = [r for r in records if peer in r and best in r]
+        paired[peer] = {'trials': len(both),
+                        best: float(np.mean([r[best]['success'] for r in both])),
+                        peer: float(np.mean([r[peer]['success'] for r in both]))}
+    if 'open3d_fpfh_ransac' in paired:
+        p = paired['open3d_fpfh_ransac']
+        goals.append(goal(f'{best}_success_rate_minus_open3d_fpfh_ransac_same_trials', 0.0, '>',
+                          p[best] - p['open3d_fpfh_ransac']))
     write_report(args.out, goals, summary=summary, success_rate_per_object=per_object,
+                 paired_success_on_the_peers_trials=paired,
                  timing_exclusive_lock=timing, trials=len(records),
                  tolerance={'translation_m': TOL_T, 'rotation_deg': float(np.degrees(TOL_R))},
                  load_average=list(os.getloadavg()), records=records,
@@ -214,8 +259,10 @@ def timing_only(args, trials, models):
     data = json.loads(path.read_text())
     rng = np.random.default_rng(0)
     pick = rng.choice(len(trials), size=min(args.timing_only, len(trials)), replace=False)
-    timing = {}
-    for method in data['summary']:
+    timing = dict(data.get('timing_exclusive_lock') or {})
+    for method in [m for m in args.methods if m in data['summary']]:
+        _, _, _, name, pts, camera, _ = trials[pick[0]]
+        run_method(method, models[name], pts, camera, 0)       # warm-up (numba cache load)
         times = []
         for i in pick:
             _, _, _, name, pts, camera, _ = trials[i]
@@ -223,6 +270,8 @@ def timing_only(args, trials, models):
         timing[method] = stats(times) | {'n': len(times)}
         print(method, timing[method], flush=True)
     timing['load_average_after'] = list(os.getloadavg())
+    timing['note'] = ('re-timed under the exclusive CPU lock on a random subset of the same '
+                      'trials (numba kernels compiled before timing)')
 
     class A:
         pass

@@ -13,12 +13,15 @@ poses are 4x4 transforms model frame -> sensor frame. Open3D does the nearest-ne
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
 
 from stereo_manip_tools.mesh_io import PolygonMesh
+
+if TYPE_CHECKING:  # pragma: no cover
+    from object_localizer.acquisition import AcquisitionModel
 
 __all__ = [
     'ModelTemplate',
@@ -206,13 +209,18 @@ def localize(model: ModelTemplate, scene_points: np.ndarray, *,
              prior: Optional[np.ndarray] = None, min_inlier_fraction: float = 0.5,
              seed: int = 0, max_distance: float = 0.01, loss: str = 'tukey',
              loss_scale: float = 0.0015, drop_plane: bool = True, attempts: int = 5,
-             accept_fraction: float = 0.9) -> LocalizationResult:
+             accept_fraction: float = 0.9, acquisition: Optional['AcquisitionModel'] = None,
+             camera: Optional[object] = None) -> LocalizationResult:
     """Localise ``model`` in a scene cloud (N, 3) [m]: fine from ``prior`` when it holds, else
     rough + fine.
 
     The global search runs up to ``attempts`` seeded RANSAC hypotheses, each refined, and keeps
     the one with the most inliers (then the lowest RMS); it stops early once a hypothesis
-    explains ``accept_fraction`` of the visible model.
+    explains ``accept_fraction`` of the visible model. With ``acquisition`` (an
+    :class:`~object_localizer.acquisition.AcquisitionModel` of the same object) the global
+    search is :func:`~object_localizer.acquisition.acquire_object` instead: PPF voting,
+    visibility verification (``camera`` intrinsics, or a virtual camera) and ICP, then this
+    function's fine stage from its best hypothesis (method ``'acquisition+fine'``).
 
     :raises ValueError: unusable clouds.
     """
@@ -225,6 +233,14 @@ def localize(model: ModelTemplate, scene_points: np.ndarray, *,
             if res.inlier_fraction >= min_inlier_fraction:
                 return res
     scene = prepare_scene(scene_points, model.voxel_size / 2.0)
+    if acquisition is not None:
+        from object_localizer.acquisition import acquire_object
+        hyps = acquire_object(acquisition, scene_points, camera=camera, seed=seed)
+        if hyps:
+            res = fine_localize(model, scene, hyps[0].pose, max_distance=max_distance,
+                                loss=loss, loss_scale=loss_scale)
+            res.method = 'acquisition+fine'
+            return res
     search = prepare_scene(scene_points, model.voxel_size)
     if drop_plane:
         diameter = float(np.linalg.norm(model.points.max(axis=0) - model.points.min(axis=0)))

@@ -58,10 +58,12 @@ class ObjectLocalizerNode(Node):
         'loss_scale': 'loss_scale',
         'inlier_distance': 'inlier_distance',
         'min_inlier_fraction': 'min_inlier_fraction',
+        'min_acquisition_inlier_fraction': 'min_acquisition_inlier_fraction',
         'max_visible_residual': 'max_visible_residual',
         'max_free_space_fraction': 'max_free_space_fraction',
         'max_prediction_error': 'max_prediction_error',
         'max_penetration': 'max_penetration',
+        'stereo_baseline': 'stereo_baseline',
         'static_recheck_period': 'static_recheck_period',
         'track_length': 'max_history',
     }
@@ -96,9 +98,12 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('inlier_distance', 0.003,
                                _float('largest surface distance [m] of an observed point for a '
                                       'model sample to count as seen', 0.0005, 0.05))
-        self.declare_parameter('min_inlier_fraction', 0.5,
+        self.declare_parameter('min_inlier_fraction', 0.75,
                                _float('smallest share of the expected-visible model surface '
-                                      'seen, for a pose to be published', 0.0, 1.0))
+                                      'seen, for a tracked pose to be published', 0.0, 1.0))
+        self.declare_parameter('min_acquisition_inlier_fraction', 0.85,
+                               _float('the same for an acquired pose or a hint (no prediction '
+                                      'to compare with)', 0.0, 1.0))
         self.declare_parameter('max_visible_residual', 0.0015,
                                _float('largest RMS surface residual [m] of a published pose',
                                       0.0001, 0.05))
@@ -108,6 +113,10 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('max_prediction_error', 0.02,
                                _float('largest mean displacement [m] from the constant-velocity '
                                       'prediction, for a published pose', 0.0005, 1.0))
+        self.declare_parameter('stereo_baseline', 0.1,
+                               _float('x [m] of the second stereo camera in the cloud frame: '
+                                      'the check expects only surfaces both cameras face (0: '
+                                      'one viewpoint, e.g. a depth camera)', 0.0, 2.0))
         self.declare_parameter('max_penetration', 0.005,
                                _float('a pose deeper than this [m] inside another verified '
                                       'object (10 % of its volume) is rejected', 0.0005, 0.1))

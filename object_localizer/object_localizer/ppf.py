@@ -137,7 +137,7 @@ def _alpha(Rg, pr, pi):  # pragma: no cover - numba
 
 
 @numba.njit(cache=True)
-def _build_table(P, N, frames, dstep, nd, nb):  # pragma: no cover - numba
+def _build_table(P, N, frames, dstep, nd, nb, cap):  # pragma: no cover - numba
     M = P.shape[0]
     n_keys = nd * nb * nb * nb
     keys = np.full(M * M, -1, np.int64)
@@ -145,11 +145,15 @@ def _build_table(P, N, frames, dstep, nd, nb):  # pragma: no cover - numba
         for i in range(M):
             if i != r:
                 keys[r * M + i] = _feature_key(P[r], N[r], P[i], N[i], dstep, nd, nb)
-    counts = np.zeros(n_keys + 1, np.int64)
+    full = np.zeros(n_keys, np.int64)
     for q in range(M * M):
         if keys[q] >= 0:
-            counts[keys[q] + 1] += 1
+            full[keys[q]] += 1
+    counts = np.zeros(n_keys + 1, np.int64)
+    for k in range(n_keys):
+        counts[k + 1] = min(full[k], cap)
     offsets = np.cumsum(counts)
+    seen = np.zeros(n_keys, np.int64)
     fill = offsets[:-1].copy()
     entry_point = np.empty(offsets[-1], np.int32)
     entry_alpha = np.empty(offsets[-1], np.float32)
@@ -157,6 +161,11 @@ def _build_table(P, N, frames, dstep, nd, nb):  # pragma: no cover - numba
         for i in range(M):
             key = keys[r * M + i]
             if key < 0:
+                continue
+            c = seen[key]
+            seen[key] += 1
+            # keep ``cap`` entries evenly spread over the key's pairs (r-major order)
+            if (c + 1) * cap // full[key] == c * cap // full[key]:
                 continue
             e = fill[key]
             fill[key] += 1
@@ -166,9 +175,15 @@ def _build_table(P, N, frames, dstep, nd, nb):  # pragma: no cover - numba
 
 
 def build_ppf_model(points: np.ndarray, normals: np.ndarray, distance_step: float, *,
-                    angle_bins: int = 30, alpha_bins: int = 30) -> PPFModel:
+                    angle_bins: int = 30, alpha_bins: int = 30,
+                    max_entries_per_feature: int = 40) -> PPFModel:
     """Feature table of a model sampled at about ``distance_step`` [m] (Drost: 0.05 x the
     diameter).
+
+    A feature value shared by more than ``max_entries_per_feature`` model pairs (planar
+    faces, spheres, cylinders: many pairs look alike) keeps that many, evenly spread over the
+    model's reference points: such a feature says little about the pose and would dominate the
+    voting time.
 
     :param points: (M, 3) model samples [m], model frame.
     :param normals: (M, 3) outward normals (normalised here).
@@ -187,7 +202,10 @@ def build_ppf_model(points: np.ndarray, normals: np.ndarray, distance_step: floa
     diameter = 2.0 * float(np.max(np.linalg.norm(P - c, axis=1)))
     nd = int(np.floor(diameter / distance_step)) + 1
     frames = _frames(N)
-    offsets, ep, ea = _build_table(P, N, frames, float(distance_step), nd, int(angle_bins))
+    if max_entries_per_feature < 1:
+        raise ValueError(f'max_entries_per_feature must be >= 1, got {max_entries_per_feature}')
+    offsets, ep, ea = _build_table(P, N, frames, float(distance_step), nd, int(angle_bins),
+                                   int(max_entries_per_feature))
     return PPFModel(P, N, diameter, float(distance_step), int(angle_bins), int(alpha_bins),
                     offsets, ep, ea, frames)
 
@@ -312,7 +330,8 @@ def cluster_poses(poses: np.ndarray, votes: np.ndarray, centre: np.ndarray,
     """Greedy pose clustering (Drost): poses in order of votes join the first cluster whose
     seed pose is within ``translation_threshold`` [m] (of the model point ``centre``) and
     ``rotation_threshold`` [rad]; a cluster's score is the sum of its members' votes and its
-    pose that of its best member.
+    pose the vote-weighted mean of its members (chordal mean of the rotations, mean of the
+    centre).
 
     :return: cluster poses (C, 4, 4) and scores (C,), best first, C <= max_clusters.
     """
@@ -325,6 +344,8 @@ def cluster_poses(poses: np.ndarray, votes: np.ndarray, centre: np.ndarray,
     cos_thr = np.cos(rotation_threshold)
     seeds: list = []
     scores: list = []
+    sum_R: list = []
+    sum_c: list = []
     seed_R = np.zeros((0, 3, 3))
     seed_c = np.zeros((0, 3))
     for k in range(len(P)):
@@ -336,11 +357,21 @@ def cluster_poses(poses: np.ndarray, votes: np.ndarray, centre: np.ndarray,
                 hit = np.flatnonzero(near)[cos >= cos_thr]
                 if len(hit):
                     scores[hit[0]] += V[k]
+                    sum_R[hit[0]] += V[k] * P[k, :3, :3]
+                    sum_c[hit[0]] += V[k] * centres[k]
                     continue
         seeds.append(k)
         scores.append(V[k])
+        sum_R.append(V[k] * P[k, :3, :3])
+        sum_c.append(V[k] * centres[k])
         seed_R = np.concatenate([seed_R, P[k:k + 1, :3, :3]])
         seed_c = np.concatenate([seed_c, centres[k:k + 1]])
     sc = np.array(scores)
     best = np.argsort(-sc, kind='stable')[:max_clusters]
-    return P[np.array(seeds)[best]], sc[best]
+    out = np.tile(np.eye(4), (len(best), 1, 1))
+    for j, b in enumerate(best):
+        U, _, Vt = np.linalg.svd(sum_R[b])
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        out[j, :3, :3] = R
+        out[j, :3, 3] = sum_c[b] / sc[b] - R @ centre
+    return out, sc[best]

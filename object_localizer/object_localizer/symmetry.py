@@ -56,11 +56,16 @@ class ModelSymmetry:
 
 def _candidate_axes(Q: np.ndarray, normals: np.ndarray | None, count: int = 12) -> np.ndarray:
     """The model frame's axes (exact for models built symmetric in their own frame), the
-    principal axes of the centred samples and the ``count`` most frequent normal directions
-    (antipodes merged): the axes a symmetry of a polyhedron or a solid of revolution turns
-    about. Earlier axes win over later ones within 2.5 degrees."""
-    _, vecs = np.linalg.eigh(Q.T @ Q)
-    axes = [np.eye(3)[k] for k in range(3)] + [vecs[:, k] for k in range(3)]
+    non-degenerate principal axes of the centred samples and the ``count`` most frequent normal
+    directions (antipodes merged): the axes a symmetry of a polyhedron or a solid of
+    revolution turns about. Earlier axes win over later ones within 2.5 degrees."""
+    vals, vecs = np.linalg.eigh(Q.T @ Q)
+    axes = [np.eye(3)[k] for k in range(3)]
+    for k in range(3):
+        # a principal axis is only defined when its moment differs from the other two
+        others = np.delete(vals, k)
+        if np.min(np.abs(others - vals[k])) > 0.05 * vals.max():
+            axes.append(vecs[:, k])
     if normals is not None and len(normals):
         N = np.asarray(normals, float)
         N = N * np.where(N @ np.array([0.577, 0.578, 0.579]) < 0, -1.0, 1.0)[:, None]

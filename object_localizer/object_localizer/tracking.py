@@ -72,12 +72,19 @@ class TrackerSettings:
     :ivar max_icp_points: at most this many of those points take part (evenly chosen).
     :ivar inlier_distance: largest distance [m] (along the model normal) of an observed point
         from the model surface for the model sample to count as seen (inlier).
-    :ivar min_inlier_fraction: smallest inlier fraction of a published pose.
+    :ivar min_inlier_fraction: smallest inlier fraction of a published tracked pose.
+    :ivar min_acquisition_inlier_fraction: the same for a pose with no motion prediction to
+        compare with (global acquisition, hints): stricter, since a part slid along itself
+        (e.g. a brick along its length, its end hidden) can keep most of its surface on the
+        observed one.
     :ivar max_visible_residual: largest RMS inlier residual [m] of a published pose.
     :ivar max_free_space_fraction: largest share of expected-visible model samples through which
         the sensor sees a surface behind the model.
     :ivar max_prediction_error: largest mean displacement [m] of the model points between the
         pose and the motion prediction.
+    :ivar stereo_baseline: position [m] of the second camera on the x axis of the cloud's
+        optical frame (REP 103 stereo: the right camera at +x); model samples must face both
+        cameras at ``min_view_cos`` to be expected visible (0: a single viewpoint).
     :ivar prediction_horizon: largest gap [s] between clouds over which the motion is
         extrapolated and the pose checked against the prediction; after a longer gap (or from a
         single pose) tracking starts from the last pose with no prediction check.
@@ -92,6 +99,8 @@ class TrackerSettings:
     :ivar ambiguity_distance: acquisition results farther apart than this (ADD-S [m]) are
         distinct solutions; when several pass the check the object is ambiguous (identical
         parts) and is only published if the last known pose is clearly nearer one of them.
+    :ivar twin_reacquire_radius: a part with an identical twin is re-acquired only within this
+        mean displacement [m] of its last known pose (and clearly nearer it than the twin's).
     :ivar static: the object does not move: after a verified pose it is held and re-verified
         every ``static_recheck_period`` [s] (cloud stamps).
     :ivar max_history: accepted poses kept in :attr:`ObjectTracker.history` (bounded).
@@ -104,15 +113,18 @@ class TrackerSettings:
     scene_voxel: float = 0.003
     max_icp_points: int = 2500
     inlier_distance: float = 0.003
-    min_inlier_fraction: float = 0.5
+    min_inlier_fraction: float = 0.75
+    min_acquisition_inlier_fraction: float = 0.85
     max_visible_residual: float = 0.0015
     max_free_space_fraction: float = 0.15
     max_prediction_error: float = 0.02
     prediction_horizon: float = 0.25
+    stereo_baseline: float = 0.1
     min_view_cos: float = 0.3
     min_visible_samples: int = 30
     max_penetration: float = 0.005
     ambiguity_distance: float = 0.005
+    twin_reacquire_radius: float = 0.02
     static: bool = False
     static_recheck_period: float = 1.0
     max_history: int = 300
@@ -317,12 +329,15 @@ def _pixels(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[int, 
 
 def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
                settings: TrackerSettings, prediction: Optional[np.ndarray] = None,
-               others: Sequence[Tuple[TrackingModel, np.ndarray]] = ()) -> PoseQuality:
+               others: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
+               acquisition: bool = False) -> PoseQuality:
     """Visibility-aware check of ``pose`` against the scene points on the rays through the
     object (``SceneCloud.cone``), see the module docstring.
 
     :param prediction: the motion prediction (4x4) the pose is compared with; None: no check.
     :param others: other objects' verified (model, pose): the pose must not penetrate them.
+    :param acquisition: the pose has no prediction (acquisition, hint): the stricter
+        ``min_acquisition_inlier_fraction`` applies.
     """
     s = settings
     q = PoseQuality()
@@ -331,6 +346,10 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
     N = model.normals @ R.T
     cos = np.einsum('ij,ij->i', N, -P) / np.linalg.norm(P, axis=1)
     facing = (cos >= s.min_view_cos) & (P[:, 2] > 1e-6)
+    if s.stereo_baseline > 0:   # stereo measures only what the second camera sees too
+        to_right = np.array([s.stereo_baseline, 0.0, 0.0]) - P
+        facing &= np.einsum('ij,ij->i', N, to_right) >= \
+            s.min_view_cos * np.linalg.norm(to_right, axis=1)
     P, N, cos = P[facing], N[facing], cos[facing]
     if prediction is not None:
         q.prediction_error = mean_displacement(model, pose, prediction)
@@ -377,9 +396,11 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
     q.free_space_fraction = float(np.count_nonzero(behind)) / expected
     q.visible_residual = float(np.sqrt(np.mean(normal_dist[inlier] ** 2))) \
         if np.any(inlier) else float('nan')
+    min_inliers = max(s.min_inlier_fraction, s.min_acquisition_inlier_fraction) \
+        if acquisition else s.min_inlier_fraction
     checks = [
-        (q.inlier_fraction >= s.min_inlier_fraction,
-         f'inlier fraction {q.inlier_fraction:.2f} < {s.min_inlier_fraction:.2f}'),
+        (q.inlier_fraction >= min_inliers,
+         f'inlier fraction {q.inlier_fraction:.2f} < {min_inliers:.2f}'),
         (q.visible_residual <= s.max_visible_residual,
          f'visible residual {1e3 * q.visible_residual:.2f} mm > '
          f'{1e3 * s.max_visible_residual:.2f} mm'),
@@ -539,7 +560,8 @@ class ObjectTracker:
             self.history.popleft()
 
     def _refine_and_check(self, scene: SceneCloud, start: np.ndarray,
-                          prediction: Optional[np.ndarray]) -> Tuple[np.ndarray, PoseQuality]:
+                          prediction: Optional[np.ndarray], acquisition: bool = False
+                          ) -> Tuple[np.ndarray, PoseQuality]:
         # self._others: set by update() for the duration of one cloud
         m, s = self.model, self.settings
         reach = m.radius + 2.0 * s.max_distance
@@ -553,7 +575,7 @@ class ObjectTracker:
         if len(near) < 10:
             return start, PoseQuality(reason=f'only {len(near)} scene points near the pose')
         pose = track_icp(m, near, start, s)
-        return pose, check_pose(m, pose, cone, s, prediction, self._others)
+        return pose, check_pose(m, pose, cone, s, prediction, self._others, acquisition)
 
     def update(self, points: np.ndarray | SceneCloud, stamp_ns: int,
                others: Sequence[Tuple[TrackingModel, np.ndarray]] = ()) -> TrackUpdate:
@@ -596,7 +618,8 @@ class ObjectTracker:
                                                        stamp_ns)
                 pose, q = self._refine_and_check(scene, prediction, prediction)
             else:   # no velocity yet, or too long ago to extrapolate: no prediction to check
-                pose, q = self._refine_and_check(scene, self.history[-1][1], None)
+                pose, q = self._refine_and_check(scene, self.history[-1][1], None,
+                                                 acquisition=True)
             if not q.passed and len(self.history) >= 2:
                 # a sudden stop or turn: from the last pose (no motion) before giving up
                 last = self.history[-1][1]
@@ -620,7 +643,7 @@ class ObjectTracker:
         s = self.settings
         if self.hint is not None:
             hint, self.hint = self.hint, None
-            pose, q = self._refine_and_check(scene, hint, None)
+            pose, q = self._refine_and_check(scene, hint, None, acquisition=True)
             if q.passed:
                 return self._start(stamp_ns, pose, q, 'initial pose verified')
             hint_reason = f'{prefix}initial pose rejected ({q.reason}); '
@@ -630,7 +653,8 @@ class ObjectTracker:
         best: Optional[Tuple[np.ndarray, PoseQuality]] = None
         passed: list = []
         for candidate in self.acquirer(self.model, scene.points, s.seed + self.acquisitions):
-            pose, q = self._refine_and_check(scene, np.asarray(candidate, dtype=float), None)
+            pose, q = self._refine_and_check(scene, np.asarray(candidate, dtype=float), None,
+                                             acquisition=True)
             if q.passed:
                 passed.append((pose, q))
             elif best is None or q.quality > best[1].quality:
@@ -646,33 +670,30 @@ class ObjectTracker:
             if all(symmetric_distance(self.model, pose, d[0]) > s.ambiguity_distance
                    for d in distinct):
                 distinct.append((pose, q))
-        twins = [t.known_pose() for t in self.twins if t.known_pose() is not None]
-        if self.twins:
+        # a twin verified in this cloud already took its place (the penetration check keeps
+        # this part out of it): only unverified twins make the acquisition ambiguous
+        verified_models = [id(m) for m, _ in self._others]
+        open_twins = [t for t in self.twins if id(t.model) not in verified_models]
+        twins = [t.known_pose() for t in open_twins if t.known_pose() is not None]
+        if open_twins:
             # an identical part elsewhere: only a known pose of this one tells which is which
             if self.reference is None:
                 return TrackUpdate(None, state, distinct[0][1], hint_reason + (
-                    f'ambiguous: the same shape as {", ".join(t.model.name for t in self.twins)}'
+                    f'ambiguous: the same shape as {", ".join(t.model.name for t in open_twins)}'
                     '; an initial pose (hint) is needed to tell them apart; not published'))
-            if len(distinct) >= 2 and len(twins) == 1:
-                # two parts, two known poses: the assignment with the smaller total distance,
-                # if it is clearly (by 20 %) better than the swapped one
-                def cost(d, ref):
-                    return mean_displacement(self.model, d[0], ref)
-                pairs = sorted(((cost(a, self.reference) + cost(b, twins[0]), i)
-                                for i, a in enumerate(distinct)
-                                for j, b in enumerate(distinct) if i != j))
-                best_i = pairs[0][1]
-                swapped = min(c for c, i in pairs if i != best_i)
-                distinct = [distinct[best_i]] if pairs[0][0] < 0.8 * swapped else []
-            else:
-                distinct = [d for d in distinct if all(
-                    mean_displacement(self.model, d[0], self.reference)
-                    < mean_displacement(self.model, d[0], other) for other in twins)]
+            # clearly nearer its own known pose than any twin's, and near enough to it that
+            # the parts cannot have swapped places (they are at least that far apart)
+            distinct = [d for d in distinct
+                        if mean_displacement(self.model, d[0], self.reference)
+                        <= s.twin_reacquire_radius and all(
+                            mean_displacement(self.model, d[0], self.reference)
+                            < 0.5 * mean_displacement(self.model, d[0], other)
+                            for other in twins)]
             if not distinct:
                 return TrackUpdate(None, state, passed[0][1], hint_reason + (
                     'ambiguous: every pose that fits is nearer the known pose of an identical '
                     'part; not published'))
-        if len(distinct) == 1 and not self.twins:
+        if len(distinct) == 1 and not open_twins:
             pose, q = distinct[0]
             return self._start(stamp_ns, pose, q, hint_reason + 'acquired', acquired=True)
         # several places fit (or an identical part exists): only a reference (the last

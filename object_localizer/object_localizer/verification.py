@@ -8,7 +8,9 @@ Every model pixel is one of
 * **inlier**: observed depth within ``inlier_threshold`` of the model depth;
 * **violation** (free-space violation): the camera sees *behind* the model surface there
   (observed depth > model depth + threshold) -- the ray passes through where the model claims
-  a surface, so the hypothesis is physically wrong at that pixel;
+  a surface, so the hypothesis is physically wrong at that pixel. On the model's silhouette
+  (a pixel with a 4-neighbour off the model) such a pixel counts as unknown instead: stereo
+  matching fattens and thins silhouettes by about half its window;
 * **occluded**: something observed in front of the model (observed < model - threshold): the
   model may be hidden there, neither evidence for nor against it;
 * **unknown**: no observed depth at that pixel.
@@ -43,6 +45,7 @@ __all__ = [
     'render_model_depth',
     'sample_model_surface',
     'score_pose_visibility',
+    'unoccluded_mask',
 ]
 
 
@@ -173,6 +176,14 @@ class VisibilityScore:
     :ivar unknown_fraction: model pixels without observed depth / model pixels.
     :ivar visible_residual: RMS of observed - model depth over the inliers [m] (NaN if none).
     :ivar model_pixels: pixels the model covers in the (coarsened) image.
+    :ivar edge_fraction: share of the model's silhouette (not occluded) where the observed
+        depth two (coarse) pixels outside jumps behind the model by more than
+        ``edge_threshold`` or is
+        missing -- the depth edge a real object makes. A pose that sinks the model into a
+        larger surface (a box face inside a table top) has a visible surface full of inliers
+        but no edges: edge_fraction near 0. Objects resting on a support keep the edges of
+        their contact side continuous, so real poses score about 0.4-0.9. NaN if no
+        silhouette pixel could be judged.
     """
 
     score: float
@@ -182,6 +193,14 @@ class VisibilityScore:
     unknown_fraction: float
     visible_residual: float
     model_pixels: int
+    edge_fraction: float = float('nan')
+
+    @property
+    def combined(self) -> float:
+        """``score * (0.25 + 0.75 * edge_fraction)`` (edge fraction 0.5 when unknown): the
+        ranking score of pose hypotheses in acquisition."""
+        e = 0.5 if not np.isfinite(self.edge_fraction) else self.edge_fraction
+        return self.score * (0.25 + 0.75 * e)
 
 
 @numba.njit(cache=True)
@@ -282,10 +301,19 @@ def _compare(model, observed, thr):  # pragma: no cover - numba
                 continue
             n += 1
             o = observed[y, x]
+            border = False
+            if y == 0 or y == H - 1 or x == 0 or x == W - 1:
+                border = True
+            elif not (np.isfinite(model[y - 1, x]) and np.isfinite(model[y + 1, x])
+                      and np.isfinite(model[y, x - 1]) and np.isfinite(model[y, x + 1])):
+                border = True
             if not np.isfinite(o):
                 unk += 1
             elif o > m + thr:
-                vio += 1
+                if border:
+                    unk += 1        # stereo fattens/thins silhouettes: no evidence there
+                else:
+                    vio += 1
             elif o < m - thr:
                 occ += 1
             else:
@@ -294,9 +322,38 @@ def _compare(model, observed, thr):  # pragma: no cover - numba
     return n, inl, vio, occ, unk, ss
 
 
+@numba.njit(cache=True)
+def _edges(model, observed, thr, gap):  # pragma: no cover - numba
+    sup = 0
+    cont = 0
+    H, W = model.shape
+    for y in range(H):
+        for x in range(W):
+            m = model[y, x]
+            if not np.isfinite(m):
+                continue
+            for k in range(4):
+                dy = gap if k == 0 else (-gap if k == 1 else 0)
+                dx = gap if k == 2 else (-gap if k == 3 else 0)
+                yy = y + dy
+                xx = x + dx
+                if yy < 0 or yy >= H or xx < 0 or xx >= W:
+                    continue
+                if np.isfinite(model[yy, xx]):
+                    continue
+                # (y, x) is on the silhouette, (yy, xx) just outside it
+                o = observed[yy, xx]
+                if not np.isfinite(o) or o > m + thr:
+                    sup += 1
+                elif o >= m - thr:
+                    cont += 1
+    return sup, cont
+
+
 def score_pose_visibility(surface: SurfaceSamples, pose: np.ndarray, observed: ObservedDepth,
                           *, inlier_threshold: float = 0.004,
-                          violation_weight: float = 1.0) -> VisibilityScore:
+                          violation_weight: float = 1.0,
+                          edge_threshold: float = 0.01) -> VisibilityScore:
     """Visible-surface score of a pose hypothesis against the observed depth (module doc).
 
     :param surface: dense model-surface samples (:func:`sample_model_surface`; an
@@ -305,6 +362,7 @@ def score_pose_visibility(surface: SurfaceSamples, pose: np.ndarray, observed: O
     :param observed: :func:`observe_depth` of the scene (build it once per cloud).
     :param inlier_threshold: |observed - model| depth tolerance [m] of an inlier pixel.
     :param violation_weight: weight of a free-space violation against an inlier.
+    :param edge_threshold: depth jump [m] that counts as a silhouette edge.
     """
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
@@ -315,5 +373,31 @@ def score_pose_visibility(surface: SurfaceSamples, pose: np.ndarray, observed: O
     if n == 0:
         return VisibilityScore(0.0, 0.0, 0.0, 0.0, 0.0, float('nan'), 0)
     score = (inl - violation_weight * vio) / n
+    sup, cont = _edges(model, observed.depth, float(edge_threshold), 2)
+    edge = sup / (sup + cont) if sup + cont else float('nan')
     return VisibilityScore(float(min(1.0, max(0.0, score))), inl / n, vio / n, occ / n,
-                           unk / n, float(np.sqrt(ss / inl)) if inl else float('nan'), int(n))
+                           unk / n, float(np.sqrt(ss / inl)) if inl else float('nan'), int(n),
+                           float(edge))
+
+
+def unoccluded_mask(points: np.ndarray, normals: np.ndarray, observed: ObservedDepth,
+                    tolerance: float) -> np.ndarray:
+    """Mask (N,) of model points [m, optical frame] the camera can see: normal facing the
+    sensor, and at their pixel the observed depth is not in front of them by more than
+    ``tolerance`` [m] (not hidden behind another object) and is known.
+
+    ICP restricted to these points is not pulled by the surfaces of an occluder.
+    """
+    P = np.asarray(points, dtype=float)
+    facing = np.einsum('ij,ij->i', normals, P) < 0
+    cam = observed.camera
+    z = P[:, 2]
+    ok = facing & (z > 1e-6)
+    u = np.full(len(P), -1)
+    v = np.full(len(P), -1)
+    u[ok] = np.floor(cam.fx * P[ok, 0] / z[ok] + cam.cx + 0.5).astype(int)
+    v[ok] = np.floor(cam.fy * P[ok, 1] / z[ok] + cam.cy + 0.5).astype(int)
+    ok &= (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    d = np.full(len(P), np.nan)
+    d[ok] = observed.depth[v[ok], u[ok]]
+    return ok & np.isfinite(d) & (d >= z - tolerance)
