@@ -134,10 +134,10 @@ class ContactCorrectionNode(Node):
         self.declare_parameter('recognition', True, _bool(
             'recognise the relation (model selection against the stated pose noise + temporal '
             'model over the track); false: detect it per frame with `tolerance`'))
-        self.declare_parameter('sigma_translation', 0.002, _float(
+        self.declare_parameter('sigma_translation', 0.001, _float(
             'stated pose noise of the moving object relative to the fixed one, translation '
             'per axis [m] (1 sigma)', 1e-6, 0.1))
-        self.declare_parameter('sigma_rotation', float(np.deg2rad(2.0)), _float(
+        self.declare_parameter('sigma_rotation', float(np.deg2rad(1.0)), _float(
             'stated pose noise, rotation per axis [rad] (1 sigma)', 1e-6, 1.0))
         self.declare_parameter('search_margin', 0.0, _float(
             'margin [m] of the candidate contacts; 0: 3 (sigma_t + sigma_r size / 2)',

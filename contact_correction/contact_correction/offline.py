@@ -280,9 +280,9 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     g.add_argument('--online', action='store_true',
                    help='temporal model causal (as the node) instead of back-tracking the '
                         'whole track')
-    g.add_argument('--sigma-translation', type=float, default=0.002,
+    g.add_argument('--sigma-translation', type=float, default=0.001,
                    help='stated pose noise, translation per axis [m]')
-    g.add_argument('--sigma-rotation-deg', type=float, default=2.0,
+    g.add_argument('--sigma-rotation-deg', type=float, default=1.0,
                    help='stated pose noise, rotation per axis [deg]')
     g.add_argument('--search-margin', type=float, default=None,
                    help='candidate contact margin [m] (not given: 3 (sigma_t + sigma_r '

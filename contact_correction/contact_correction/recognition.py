@@ -74,8 +74,8 @@ class RecognitionOptions:
     :ivar beam: relations kept per frame by the temporal model.
     """
 
-    sigma_translation: float = 0.002
-    sigma_rotation: float = float(np.deg2rad(2.0))
+    sigma_translation: float = 0.001
+    sigma_rotation: float = float(np.deg2rad(1.0))
     sigma_model: float = 2e-4
     search_margin: Optional[float] = None
     free_dof_penalty: Optional[float] = 3.0
