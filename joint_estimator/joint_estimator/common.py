@@ -79,7 +79,7 @@ class JointFit:
     :ivar inliers: (N,) bool, False for frames rejected as outliers.
     :ivar n_params: number of model parameters (without the per-frame coordinates).
     :ivar score: BIC (lower is better), NaN until scored by the model selection.
-    :ivar repaired: (N,) bool, frames whose pose was replaced by its ambiguous twin
+    :ivar repaired: (N,) bool, inlier frames whose pose was replaced by its ambiguous twin
         (:mod:`joint_estimator.ambiguity`); the residuals are those of the pose used.
     :ivar sigma_position: position noise scale [m] the residuals are normalised by (estimated
         from the data unless given); :ivar sigma_rotation: the same for orientations [rad].

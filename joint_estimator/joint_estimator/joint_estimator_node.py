@@ -17,8 +17,17 @@ streams) and published:
     spherical centre as a sphere, the planar normal as an arrow; deleted for a fixed joint).
 Service ``estimate_joint`` (stereo_manip_msgs/EstimateJoint) estimates from a batch.
 
+Defaults suit square-marker tracks from a camera with unknown noise: the noise levels are
+estimated from the data (``sigma_position`` / ``sigma_rotation`` 0), flipped marker poses are
+repaired with their ambiguity twin (``flip_repair``; relative mode: link B is the camera, link A
+the marker; two_links mode: both links' poses are markers in the camera's frame), and every
+estimate reports its noise, inlier coverage, axis uncertainty and warnings.
+
 Bad input (NaN, zero quaternion, stamps going backwards, unpaired poses) is logged with the
-reason and counted; the counts are in every JointEstimate's ``status``.
+reason and counted; the counts are in every JointEstimate's ``status``. A stamp more than
+``stamp_reset_threshold`` behind the newest one (a source restart, a bag played in a loop)
+clears the window (and the pairing queues), is logged once per event and counted; estimation
+resumes once ``min_poses`` new poses have arrived.
 """
 
 from __future__ import annotations
@@ -40,6 +49,7 @@ from stereo_manip_msgs.msg import JointEstimate
 from stereo_manip_msgs.srv import EstimateJoint
 from visualization_msgs.msg import Marker
 
+from joint_estimator.ambiguity import AXIS_INDEX, relative_candidates, two_link_candidates
 from joint_estimator.common import JointType, relative_track
 from joint_estimator.selection import estimate_joint, JointEstimation
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
@@ -70,7 +80,8 @@ def joint_position(estimation: JointEstimation) -> float:
 
 def estimation_to_msg(estimation: JointEstimation, header: Header, link_a_frame: str,
                       link_b_frame: str) -> JointEstimate:
-    """JointEstimate message of an estimation (RMS residuals over the inlier frames)."""
+    """JointEstimate message of an estimation (RMS residuals over the inlier frames; noise,
+    coverage, uncertainty and warnings of the selected fit)."""
     b = estimation.best
     msg = JointEstimate(header=header, joint_type=int(b.joint_type), link_a_frame=link_a_frame,
                         link_b_frame=link_b_frame)
@@ -84,6 +95,19 @@ def estimation_to_msg(estimation: JointEstimation, header: Header, link_a_frame:
     msg.outlier_count = int(b.outlier_indices.size)
     msg.candidate_types = [int(t) for t in estimation.candidates]
     msg.candidate_scores = [float(f.score) for f in estimation.candidates.values()]
+    msg.repaired_count = int(b.repaired_indices.size)
+    msg.rotation_noise = float(b.sigma_rotation)
+    msg.position_noise = float(b.sigma_position)
+    msg.position_noise_ray_ratio = float(b.extra.get('line_of_sight_noise_ratio', 1.0))
+    msg.noise_estimated = bool(b.scale_estimated)
+    msg.inlier_coordinate_min, msg.inlier_coordinate_max = (float(v)
+                                                            for v in b.coordinate_range)
+    msg.motion_coordinate_min, msg.motion_coordinate_max = (float(v) for v in b.motion_range)
+    msg.inlier_coverage = float(b.coverage)
+    msg.axis_angle_std_in_a = float(b.axis_angle_std_in_a)
+    msg.axis_angle_std_in_b = float(b.axis_angle_std_in_b)
+    msg.axis_point_std = float(b.axis_point_std)
+    msg.warnings = [str(w) for w in b.warnings]
     msg.joint_position = joint_position(estimation)
     msg.status = estimation.status
     return msg
@@ -139,10 +163,21 @@ class JointEstimatorNode(Node):
         self.declare_parameter('joint_type', 'auto', _string(
             'joint type to fit: auto (BIC selection), fixed, revolute, prismatic, spherical, '
             'cylindrical or planar'))
-        self.declare_parameter('sigma_position', 0.005, _float(
-            'position noise std per axis of the pose tracks [m]', 1e-6, 1.0))
-        self.declare_parameter('sigma_rotation', float(np.deg2rad(2.0)), _float(
-            'orientation noise std per axis of the pose tracks [rad]', 1e-6, 1.0))
+        self.declare_parameter('sigma_position', 0.0, _float(
+            'position noise std per axis of the pose tracks [m]; 0: estimated from the data',
+            0.0, 1.0))
+        self.declare_parameter('sigma_rotation', 0.0, _float(
+            'orientation noise std per axis of the pose tracks [rad]; 0: estimated from the '
+            'data', 0.0, 1.0))
+        self.declare_parameter('flip_repair', True, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description='repair square-marker pose flips with the ambiguity twin (relative '
+                        'mode: link B is the camera; two_links: both poses in the camera frame)'))
+        self.declare_parameter('marker_normal_axis', 'z', _string(
+            "axis of the marker frame that is its normal: 'x', 'y' or 'z' (ArUco: z)"))
+        self.declare_parameter('stamp_reset_threshold', 0.5, _float(
+            'a stamp this far behind the newest [s] is a source restart: the window is cleared',
+            0.0, 1e6))
         self.declare_parameter('robust', True, ParameterDescriptor(
             type=ParameterType.PARAMETER_BOOL,
             description='reject outlier frames (MSAC over minimal sets + refit)'))
@@ -163,7 +198,10 @@ class JointEstimatorNode(Node):
             read_only=True))
 
         self.window: deque = deque(maxlen=int(self.get_parameter('window_size').value))
-        self.counts = {'received': 0, 'rejected': 0, 'estimates': 0, 'failed_estimates': 0}
+        self.counts = {'received': 0, 'rejected': 0, 'estimates': 0, 'failed_estimates': 0,
+                       'resets': 0}
+        self._last_pair_stamp: Optional[int] = None
+        self._sync_dropped_before: dict = {}
         self._new_since_estimate = 0
         self._last_b_frame = ''
         self.estimate_pub = self.create_publisher(JointEstimate, 'joint_estimate', 10)
@@ -183,6 +221,7 @@ class JointEstimatorNode(Node):
                                      guard(self._on_relative, 'relative_pose'), qos)
         else:
             tol = int(round(self.get_parameter('sync_tolerance').value * 1e9))
+            self._sync_tolerance_ns = tol
             self.sync = StampSynchronizer(('a', 'b'), tolerance_ns=tol, queue_size=50)
             self.create_subscription(PoseStamped, 'link_a_pose',
                                      guard(lambda m: self._on_link(m, 'a'), 'link_a_pose'), qos)
@@ -205,6 +244,10 @@ class JointEstimatorNode(Node):
                 return SetParametersResult(
                     successful=False, reason=f'joint_type must be one of '
                     f'{", ".join(JOINT_TYPE_NAMES)}, got {p.value!r}')
+            if p.name == 'marker_normal_axis' and p.value not in AXIS_INDEX:
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"marker_normal_axis must be 'x', 'y' or 'z', got {p.value!r}")
             if p.name == 'correction' and p.value not in ('ml', 'chapter'):
                 return SetParametersResult(
                     successful=False,
@@ -212,16 +255,29 @@ class JointEstimatorNode(Node):
         return SetParametersResult(successful=True)
 
     def _estimate(self, poses: np.ndarray, stamps: np.ndarray,
-                  joint_type: Optional[int] = None) -> JointEstimation:
+                  joint_type: Optional[int] = None,
+                  link_poses: Optional[tuple] = None) -> JointEstimation:
+        """Estimate with the node's parameters; ``link_poses = (A, B)`` (camera frame) in
+        two_links mode, for the flip candidates of both links."""
         g = self.get_parameter
         if joint_type is None:
             joint_type = JOINT_TYPE_NAMES[g('joint_type').value]
+        axis = AXIS_INDEX[g('marker_normal_axis').value]
+        flip = bool(g('flip_repair').value)
+        candidates = None
+        if flip and link_poses is not None:
+            candidates = two_link_candidates(link_poses[0], link_poses[1], axis)
+        elif flip:
+            candidates = relative_candidates(poses, axis)
         return estimate_joint(
-            poses, joint_type=joint_type, sigma_position=g('sigma_position').value,
-            sigma_rotation=g('sigma_rotation').value, robust=g('robust').value,
+            poses, joint_type=joint_type, sigma_position=g('sigma_position').value or None,
+            sigma_rotation=g('sigma_rotation').value or None, robust=g('robust').value,
             refine=g('refine').value, correction=g('correction').value,
             min_rotation_range=g('min_rotation_range').value,
-            min_translation_range=g('min_translation_range').value, stamps_ns=stamps)
+            min_translation_range=g('min_translation_range').value, stamps_ns=stamps,
+            flip_repair=flip, marker_normal_axis=axis, pose_candidates=candidates,
+            # the relative positions of two links are not seen along a camera's line of sight
+            camera_noise=link_poses is None)
 
     def _b_frame(self) -> str:
         return self.get_parameter('link_b_frame').value or self._last_b_frame or 'link_b'
@@ -241,10 +297,16 @@ class JointEstimatorNode(Node):
             self._reject(f'link_{key}_pose', str(exc))
             return
         del frame     # the common frame; link B's own frame name is link_b_frame
+        if (self._last_pair_stamp is not None
+                and stamp < self._last_pair_stamp - self._reset_threshold_ns()):
+            self._reset(f'link_{key}_pose', stamp, self._last_pair_stamp)
         pair = self.sync.add(key, stamp, (T, stamp))
         if pair is not None:
-            T_rel = relative_track(pair['a'][0][None], pair['b'][0][None])[0]
-            self._add(T_rel, max(pair['a'][1], pair['b'][1]))
+            T_a, T_b = pair['a'][0], pair['b'][0]
+            T_rel = relative_track(T_a[None], T_b[None])[0]
+            stamp_pair = max(pair['a'][1], pair['b'][1])
+            self._last_pair_stamp = stamp_pair
+            self._add(T_rel, stamp_pair, (T_a, T_b))
 
     def _on_relative(self, msg: PoseStamped) -> None:
         self.counts['received'] += 1
@@ -256,12 +318,36 @@ class JointEstimatorNode(Node):
         self._last_b_frame = frame
         self._add(T, stamp)
 
-    def _add(self, T: np.ndarray, stamp: int) -> None:
+    def _reset_threshold_ns(self) -> int:
+        return int(round(self.get_parameter('stamp_reset_threshold').value * 1e9))
+
+    def _reset(self, what: str, stamp: int, newest: int) -> None:
+        """A source restart (stamps jumped back): clear the window and the pairing queues; one
+        log line per event."""
+        self.counts['resets'] += 1
+        self.get_logger().warning(
+            f'{what}: stamp {stamp} ns is {(newest - stamp) / 1e9:.3f} s behind the newest '
+            f'({newest} ns): source restarted; window of {len(self.window)} poses cleared '
+            f'(reset {self.counts["resets"]}), estimating again after '
+            f'{self.get_parameter("min_poses").value} poses')
+        self.window.clear()
+        self._new_since_estimate = 0
+        self._last_pair_stamp = None
+        if self.sync is not None:
+            for k, v in self.sync.dropped.items():
+                self._sync_dropped_before[k] = self._sync_dropped_before.get(k, 0) + v
+            self.sync = StampSynchronizer(('a', 'b'), tolerance_ns=self._sync_tolerance_ns,
+                                          queue_size=50)
+
+    def _add(self, T: np.ndarray, stamp: int, link_poses: Optional[tuple] = None) -> None:
         if self.window and stamp <= self.window[-1][0]:
-            self._reject('pose', f'stamp {stamp} ns is not after the previous one '
-                         f'({self.window[-1][0]} ns); stamps must increase')
-            return
-        self.window.append((stamp, T))
+            if stamp < self.window[-1][0] - self._reset_threshold_ns():
+                self._reset('pose', stamp, self.window[-1][0])
+            else:
+                self._reject('pose', f'stamp {stamp} ns is not after the previous one '
+                             f'({self.window[-1][0]} ns); stamps must increase')
+                return
+        self.window.append((stamp, T, link_poses))
         self._new_since_estimate += 1
         g = self.get_parameter
         if (len(self.window) >= g('min_poses').value
@@ -272,15 +358,23 @@ class JointEstimatorNode(Node):
     def _dropped_summary(self) -> str:
         parts = [f'{self.counts["rejected"]} poses rejected']
         if self.sync is not None:
-            parts.append(f'{sum(self.sync.dropped.values())} unpaired '
-                         f'({", ".join(f"{k} {v}" for k, v in self.sync.dropped.items())})')
+            dropped = {k: v + self._sync_dropped_before.get(k, 0)
+                       for k, v in self.sync.dropped.items()}
+            parts.append(f'{sum(dropped.values())} unpaired '
+                         f'({", ".join(f"{k} {v}" for k, v in dropped.items())})')
+        if self.counts['resets']:
+            parts.append(f'{self.counts["resets"]} source restarts (window cleared)')
         return 'input: ' + ', '.join(parts)
 
     def _publish_window_estimate(self) -> None:
-        stamps = np.array([s for s, _ in self.window], dtype=np.int64)
-        poses = np.array([T for _, T in self.window])
+        stamps = np.array([s for s, _, _ in self.window], dtype=np.int64)
+        poses = np.array([T for _, T, _ in self.window])
+        links = None
+        if self.sync is not None and all(lp is not None for _, _, lp in self.window):
+            links = (np.array([lp[0] for _, _, lp in self.window]),
+                     np.array([lp[1] for _, _, lp in self.window]))
         try:
-            est = self._estimate(poses, stamps)
+            est = self._estimate(poses, stamps, link_poses=links)
         except ValueError as exc:
             self.counts['failed_estimates'] += 1
             self.get_logger().warning(f'no estimate from {len(poses)} poses '
@@ -313,15 +407,16 @@ class JointEstimatorNode(Node):
                     raise ValueError(f'stamps of link_a and link_b differ at pose {i} '
                                      f'({stamps[i]} vs {stamps_b[i]} ns)')
                 poses = relative_track(T_a, T_b)
+                links = (T_a, T_b)
                 b_frame = self.get_parameter('link_b_frame').value or 'link_b'
             else:
-                poses = T_a
+                poses, links = T_a, None
                 b_frame = (self.get_parameter('link_b_frame').value
                            or request.link_a.header.frame_id or 'link_b')
             jt = int(request.joint_type)
             if jt != 255 and jt not in {int(t) for t in JointType}:
                 raise ValueError(f'joint_type {jt} is not a JointEstimate constant or AUTO (255)')
-            est = self._estimate(poses, stamps, jt)
+            est = self._estimate(poses, stamps, jt, links)
         except ValueError as exc:
             response.success = False
             response.message = str(exc)
@@ -332,6 +427,9 @@ class JointEstimatorNode(Node):
                                               self.get_parameter('link_a_frame').value, b_frame)
         response.corrected_track = matrices_to_path(est.best.corrected, b_frame, stamps)
         response.outlier_indices = [int(i) for i in est.best.outlier_indices]
+        response.repaired_indices = [int(i) for i in est.best.repaired_indices]
+        if est.best.coordinates.shape[1] and est.best.joint_type != JointType.SPHERICAL:
+            response.coordinates = [float(v) for v in est.best.coordinates[:, 0]]
         response.success = True
         response.message = est.status
         return response

@@ -6,10 +6,15 @@ Input, one of:
     common frame, ``a_x a_y a_z a_qx a_qy a_qz a_qw b_x b_y b_z b_qx b_qy b_qz b_qw``;
   - ``--bag DIR`` with geometry_msgs/PoseStamped topics: ``--topic-relative`` or
     ``--topic-a`` and ``--topic-b`` (paired by header stamp within ``--sync-tolerance``).
-Output: a summary on stdout, ``--output`` JSON (parameters, candidates' BIC, rejected frames,
-joint coordinates), ``--figure`` PNG like the chapter's Fig. 13 (the track of link A's origin in
-link B's frame and the estimated axis, from the side and the front, plus the joint coordinate
-and residuals per frame), ``--corrected-csv`` (the corrected relative track).
+Defaults: noise levels estimated from the data (give ``--sigma-position`` and
+``--sigma-rotation-deg`` for a known sensor), square-marker pose flips repaired with the
+ambiguity twin (relative input: link B is the camera, link A the marker; two-link input: both
+poses in the camera's frame; ``--no-flip-repair`` to turn off).
+Output: a summary on stdout (warnings on stderr), ``--output`` JSON (parameters, candidates'
+BIC, rejected and repaired frames, estimated noise, inlier coverage, axis uncertainty, warnings,
+unwrapped joint coordinates), ``--figure`` PNG like the chapter's Fig. 13 (the track of link A's
+origin in link B's frame and the estimated axis, from the side and the front, plus the joint
+coordinate and residuals per frame), ``--corrected-csv`` (the corrected relative track).
 Exit status 0 on success, 2 on bad input (message on stderr).
 """
 
@@ -24,6 +29,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from joint_estimator.ambiguity import AXIS_INDEX, two_link_candidates
 from joint_estimator.common import JointType, relative_track
 from joint_estimator.selection import estimate_joint, JointEstimation
 from stereo_manip_tools.transforms import matrix_from_quaternion, quaternion_from_matrix
@@ -43,8 +49,10 @@ def _poses_from_columns(cols: np.ndarray, where: str) -> np.ndarray:
     return T
 
 
-def read_csv_track(path: Path) -> tuple:
-    """Relative track ``^B T_A`` (N, 4, 4) and stamps [ns] (or None) from a CSV file.
+def read_csv_track(path: Path, with_links: bool = False) -> tuple:
+    """Relative track ``^B T_A`` (N, 4, 4) and stamps [ns] (or None) from a CSV file; with
+    ``with_links`` also the two links' tracks ``(A, B)`` in the common frame (None for a
+    relative CSV).
 
     :raises ValueError: unreadable file, missing columns, non-numeric or non-finite values.
     """
@@ -67,19 +75,23 @@ def read_csv_track(path: Path) -> tuple:
     if 'stamp' in col:
         stamps = np.round(data[:, col['stamp']] * 1e9).astype(np.int64)
     if all(k in col for k in _POSE):
-        return _poses_from_columns(data[:, [col[k] for k in _POSE]], str(path)), stamps
+        T = _poses_from_columns(data[:, [col[k] for k in _POSE]], str(path))
+        return (T, stamps, None) if with_links else (T, stamps)
     a_cols, b_cols = [f'a_{k}' for k in _POSE], [f'b_{k}' for k in _POSE]
     if all(k in col for k in a_cols + b_cols):
         T_a = _poses_from_columns(data[:, [col[k] for k in a_cols]], f'{path} (link a)')
         T_b = _poses_from_columns(data[:, [col[k] for k in b_cols]], f'{path} (link b)')
-        return relative_track(T_a, T_b), stamps
+        T = relative_track(T_a, T_b)
+        return (T, stamps, (T_a, T_b)) if with_links else (T, stamps)
     raise ValueError(f'{path}: header must have columns {" ".join(_POSE)} (relative pose) or '
                      f'a_x ... a_qw and b_x ... b_qw (two links); found {" ".join(header)}')
 
 
 def read_bag_track(path: Path, topic_relative: Optional[str], topic_a: Optional[str],
-                   topic_b: Optional[str], sync_tolerance: float = 0.005) -> tuple:
-    """Relative track and stamps [ns] from PoseStamped topics of a rosbag2 bag.
+                   topic_b: Optional[str], sync_tolerance: float = 0.005,
+                   with_links: bool = False) -> tuple:
+    """Relative track and stamps [ns] from PoseStamped topics of a rosbag2 bag (with
+    ``with_links``, also the paired links' tracks ``(A, B)``, None for a relative topic).
 
     :raises ValueError: bad bag, missing topic, wrong type, unusable pose.
     """
@@ -93,7 +105,7 @@ def read_bag_track(path: Path, topic_relative: Optional[str], topic_a: Optional[
     if not all(topics):
         raise ValueError('give --topic-relative, or both --topic-a and --topic-b')
     sync = StampSynchronizer(('a', 'b'), int(round(sync_tolerance * 1e9)), queue_size=50)
-    poses, stamps = [], []
+    poses, stamps, links_a, links_b = [], [], [], []
     try:
         for m in read_bag(path, topics):
             if m.msgtype != 'geometry_msgs/msg/PoseStamped':
@@ -108,15 +120,25 @@ def read_bag_track(path: Path, topic_relative: Optional[str], topic_a: Optional[
             if pair is not None:
                 poses.append(relative_track(pair['a'][0][None], pair['b'][0][None])[0])
                 stamps.append(max(pair['a'][1], pair['b'][1]))
+                links_a.append(pair['a'][0])
+                links_b.append(pair['b'][0])
     except BagError as exc:
         raise ValueError(str(exc)) from exc
     if not poses:
         raise ValueError(f'{path}: no (paired) poses on {", ".join(topics)}')
-    return np.array(poses), np.array(stamps, dtype=np.int64)
+    out = (np.array(poses), np.array(stamps, dtype=np.int64))
+    if not with_links:
+        return out
+    return out + ((np.array(links_a), np.array(links_b)) if links_a else None,)
+
+
+def _finite_or_none(v: float):
+    return float(v) if np.isfinite(v) else None
 
 
 def estimation_to_dict(est: JointEstimation) -> dict:
-    """JSON-ready summary of an estimation (metres, radians)."""
+    """JSON-ready summary of an estimation (metres, radians; NaN as null). ``coordinates`` are
+    the joint coordinates per frame, angles unwrapped in frame order."""
     b = est.best
     return {
         'joint_type': b.joint_type.name.lower(),
@@ -127,6 +149,21 @@ def estimation_to_dict(est: JointEstimation) -> dict:
         'degenerate': b.degenerate,
         'candidate_bic': {t.name.lower(): f.score for t, f in est.candidates.items()},
         'not_scored': {t.name.lower(): m for t, m in est.failures.items()},
+        'repaired_indices': b.repaired_indices.tolist(),
+        'noise': {'sigma_position_m': b.sigma_position, 'sigma_rotation_rad': b.sigma_rotation,
+                  'estimated': bool(b.scale_estimated),
+                  'line_of_sight_ratio': float(b.extra.get('line_of_sight_noise_ratio', 1.0))},
+        'coverage': {'inlier_range': [_finite_or_none(v) for v in b.coordinate_range],
+                     'motion_range': [_finite_or_none(v) for v in b.motion_range],
+                     'fraction': _finite_or_none(b.coverage)},
+        'axis_uncertainty': {'axis_angle_std_in_a_rad': _finite_or_none(b.axis_angle_std_in_a),
+                             'axis_angle_std_in_b_rad': _finite_or_none(b.axis_angle_std_in_b),
+                             'axis_point_std_m': _finite_or_none(b.axis_point_std)},
+        'minimum_norm_point_in_a': (b.extra['minimum_norm_point_in_a'].tolist()
+                                    if 'minimum_norm_point_in_a' in b.extra else None),
+        'minimum_norm_point_in_b': (b.extra['minimum_norm_point_in_b'].tolist()
+                                    if 'minimum_norm_point_in_b' in b.extra else None),
+        'warnings': list(b.warnings),
         'coordinates': b.coordinates.tolist(), 'status': est.status,
     }
 
@@ -214,10 +251,14 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
                     help='stamp pairing tolerance for --topic-a/--topic-b [s]')
     ap.add_argument('--joint-type', default='auto',
                     choices=['auto'] + [t.name.lower() for t in JointType])
-    ap.add_argument('--sigma-position', type=float, default=0.005,
-                    help='position noise std per axis [m]')
-    ap.add_argument('--sigma-rotation-deg', type=float, default=2.0,
-                    help='orientation noise std per axis [deg]')
+    ap.add_argument('--sigma-position', type=float, default=None,
+                    help='position noise std per axis [m] (default: estimated from the data)')
+    ap.add_argument('--sigma-rotation-deg', type=float, default=None,
+                    help='orientation noise std per axis [deg] (default: estimated)')
+    ap.add_argument('--no-flip-repair', action='store_true',
+                    help='do not repair square-marker pose flips with the ambiguity twin')
+    ap.add_argument('--marker-normal-axis', choices=sorted(AXIS_INDEX), default='z',
+                    help="marker frame axis that is the marker's normal (ArUco: z)")
     ap.add_argument('--no-robust', action='store_true', help='do not reject outlier frames')
     ap.add_argument('--no-refine', action='store_true',
                     help="chapter's Eqs. 17-18 only (no maximum-likelihood refinement)")
@@ -233,17 +274,27 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = _parse(argv)
     try:
         if args.csv is not None:
-            poses, stamps = read_csv_track(args.csv)
+            poses, stamps, links = read_csv_track(args.csv, with_links=True)
         else:
-            poses, stamps = read_bag_track(args.bag, args.topic_relative, args.topic_a,
-                                           args.topic_b, args.sync_tolerance)
+            poses, stamps, links = read_bag_track(args.bag, args.topic_relative, args.topic_a,
+                                                  args.topic_b, args.sync_tolerance,
+                                                  with_links=True)
         jt = None if args.joint_type == 'auto' else int(JointType[args.joint_type.upper()])
-        if args.sigma_position <= 0 or args.sigma_rotation_deg <= 0:
-            raise ValueError('--sigma-position and --sigma-rotation-deg must be positive')
-        est = estimate_joint(poses, joint_type=jt, sigma_position=args.sigma_position,
-                             sigma_rotation=np.deg2rad(args.sigma_rotation_deg),
-                             robust=not args.no_robust, refine=not args.no_refine,
-                             correction=args.correction, stamps_ns=stamps)
+        for name, v in (('--sigma-position', args.sigma_position),
+                        ('--sigma-rotation-deg', args.sigma_rotation_deg)):
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise ValueError(f'{name} must be positive, got {v}')
+        axis = AXIS_INDEX[args.marker_normal_axis]
+        flip = not args.no_flip_repair
+        candidates = (two_link_candidates(links[0], links[1], axis)
+                      if flip and links is not None else None)
+        est = estimate_joint(
+            poses, joint_type=jt, sigma_position=args.sigma_position,
+            sigma_rotation=(None if args.sigma_rotation_deg is None
+                            else np.deg2rad(args.sigma_rotation_deg)),
+            robust=not args.no_robust, refine=not args.no_refine, correction=args.correction,
+            stamps_ns=stamps, flip_repair=flip, marker_normal_axis=axis,
+            pose_candidates=candidates, camera_noise=links is None)
     except ValueError as exc:
         print(f'estimate_joint: {exc}', file=sys.stderr)
         return 2
@@ -256,6 +307,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
           f'{np.round(b.point_in_b, 6).tolist()} m')
     print(f'RMS residual: {b.position_rms * 1000:.3f} mm, {np.degrees(b.rotation_rms):.3f} deg '
           f'over {int(b.inliers.sum())} of {b.inliers.size} frames')
+    for w in b.warnings:
+        print(f'estimate_joint: WARNING: {w}', file=sys.stderr)
     if args.output:
         args.output.write_text(json.dumps(summary, indent=2) + '\n')
     if args.figure:

@@ -20,7 +20,7 @@ import numpy as np
 
 from joint_estimator.common import minimal_rotations_onto, perpendicular_basis
 from joint_estimator.models import CylindricalModel
-from joint_estimator.revolute import AxisLineModel, RevoluteModel
+from joint_estimator.revolute import AxisLineModel, project_track, RevoluteModel
 
 __all__ = ['is_refinable', 'refine_model', 'levenberg_marquardt', 'axis_uncertainty']
 
@@ -92,7 +92,7 @@ def _parametrisation(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
 
     def residuals(x):
         m = build(x)
-        R_hat, p_hat, _ = m.project(R, p, sigma_position * ray_ratio, sigma_rotation)
+        R_hat, p_hat, _ = project_track(m, R, p, sigma_position, sigma_rotation, ray_ratio)
         E = R_hat @ np.transpose(R, (0, 2, 1))
         # sin(angle) * axis of the residual rotation: its rotation vector to first order
         rot = 0.5 * np.stack([E[:, 2, 1] - E[:, 1, 2], E[:, 0, 2] - E[:, 2, 0],

@@ -61,6 +61,8 @@ __all__ = [
     'RevoluteModel',
     'fit_revolute',
     'estimate_revolute_joint',
+    'project_track',
+    'anisotropic_angles',
     'DEFAULT_MIN_ROTATION_RANGE',
 ]
 
@@ -225,6 +227,86 @@ class RevoluteModel(AxisLineModel):
         return T[:, :3, :3], T[:, :3, 3], q[:, None]
 
 
+def project_track(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
+                  sigma_rotation: float, ray_ratio: float = 1.0, exact: bool = True) -> tuple:
+    """Project a track onto any joint ``model`` with position noise that is ``ray_ratio`` times
+    larger along the line of sight from B's origin (a camera's depth) than across it
+    (``sigma_position``).
+
+    ``ray_ratio = 1``: the model's own closed-form projection. Otherwise the joint coordinates
+    are first taken from the isotropic projection at the depth noise (so depth noise cannot
+    drive them), and for a revolute joint refined to the exact minimiser of the anisotropic
+    cost by safeguarded Newton steps on the angle (:func:`anisotropic_angles`).
+
+    ``exact=False`` skips the Newton steps (a cheaper approximation, used to rank hypotheses).
+
+    :returns: ``(R_hat (N, 3, 3), p_hat (N, 3), coordinates (N, dof))``.
+    """
+    if ray_ratio == 1.0:
+        return model.project(R, p, sigma_position, sigma_rotation)
+    R_hat, p_hat, q = model.project(R, p, sigma_position * ray_ratio, sigma_rotation)
+    if exact and isinstance(model, RevoluteModel) and R.shape[0]:
+        q = anisotropic_angles(R, p, model, q[:, 0], sigma_position, sigma_rotation,
+                               ray_ratio)[:, None]
+        T = model.pose_at(q[:, 0])
+        R_hat, p_hat = T[:, :3, :3], T[:, :3, 3]
+    return R_hat, p_hat, q
+
+
+def anisotropic_angles(R: np.ndarray, p: np.ndarray, model, q0: np.ndarray,
+                       sigma_position: float, sigma_rotation: float, ray_ratio: float,
+                       iterations: int = 6) -> np.ndarray:
+    """Revolute joint angles (N,) [rad] minimising, per frame,
+    ``(3 - Tr(R(q) R^T)) / s_r^2 + |W (hat p(q) - p)|^2 / s_p^2`` with
+    ``W = I + (1 / ray_ratio - 1) v v^T`` (``v``: unit line of sight of ``p``). With
+    ``c = cos q``, ``s = sin q`` the cost is ``-A c - B s + P c^2 + Q s^2 + 2 S c s`` + const;
+    Newton steps from ``q0``, a step kept only where it lowers the cost."""
+    ax = model.axis_in_b
+    K = _skew(ax)
+    M = model.reference[None] @ np.transpose(R, (0, 2, 1))
+    a_r = ((np.trace(M, axis1=1, axis2=2) - np.einsum('i,nij,j->n', ax, M, ax))
+           / sigma_rotation ** 2)
+    b_r = np.einsum('ij,nji->n', K, M) / sigma_rotation ** 2
+    w = model.reference @ model.point_in_a
+    w_par = ax * (ax @ w)
+    u1, u2 = w - w_par, np.cross(ax, w)
+    e0 = model.point_in_b - w_par - p                    # hat p(q) - p = e0 - c u1 - s u2
+    v = p / np.maximum(np.linalg.norm(p, axis=1), 1e-12)[:, None]
+    k = 1.0 / ray_ratio - 1.0
+
+    def whiten(x):
+        return x + v * (np.einsum('ni,ni->n', x, v) * k)[:, None]
+
+    g0, g1, g2 = whiten(e0), whiten(np.broadcast_to(u1, p.shape)), whiten(
+        np.broadcast_to(u2, p.shape))
+    sp2 = sigma_position ** 2
+    A = a_r + 2.0 * np.einsum('ni,ni->n', g0, g1) / sp2
+    B = b_r + 2.0 * np.einsum('ni,ni->n', g0, g2) / sp2
+    P = np.einsum('ni,ni->n', g1, g1) / sp2
+    Q = np.einsum('ni,ni->n', g2, g2) / sp2
+    S = np.einsum('ni,ni->n', g1, g2) / sp2
+
+    def cost(q):
+        c, s = np.cos(q), np.sin(q)
+        return -A * c - B * s + P * c * c + Q * s * s + 2.0 * S * c * s
+
+    q = np.asarray(q0, dtype=float).copy()
+    J = cost(q)
+    for _ in range(iterations):
+        c, s = np.cos(q), np.sin(q)
+        d1 = A * s - B * c + 2.0 * (Q - P) * c * s + 2.0 * S * (c * c - s * s)
+        d2 = A * c + B * s + 2.0 * (Q - P) * (c * c - s * s) - 8.0 * S * c * s
+        step = np.where(d2 > 1e-12, -d1 / np.where(d2 > 1e-12, d2, 1.0), -np.sign(d1) * 1e-3)
+        step = np.clip(step, -0.5, 0.5)
+        q_new = q + step
+        J_new = cost(q_new)
+        better = J_new < J
+        q[better], J[better] = q_new[better], J_new[better]
+        if not better.any():
+            break
+    return q
+
+
 def ml_angles(R: np.ndarray, p: np.ndarray, axis_b: np.ndarray, reference: np.ndarray,
               point_a: np.ndarray, point_b: np.ndarray, sigma_position: Optional[float],
               sigma_rotation: float, slide: bool) -> np.ndarray:
@@ -297,15 +379,23 @@ def estimate_revolute_joint(poses: np.ndarray, sigma_position: float = 0.005,
 
 
 def make_fit(model, R: np.ndarray, p: np.ndarray, sigma_position: float, sigma_rotation: float,
-             correction: str = 'ml', inliers: Optional[np.ndarray] = None) -> JointFit:
-    """Project the track onto ``model`` and package residuals into a :class:`JointFit`."""
+             correction: str = 'ml', inliers: Optional[np.ndarray] = None,
+             ray_ratio: float = 1.0) -> JointFit:
+    """Project the track onto ``model`` (:func:`project_track`) and package residuals into a
+    :class:`JointFit` (``chi2`` with the position residual's line-of-sight component divided
+    by ``ray_ratio``)."""
     if correction == 'chapter' and hasattr(model, 'project_chapter'):
         R_hat, p_hat, q = model.project_chapter(R, p)
     elif correction in ('chapter', 'ml'):
-        R_hat, p_hat, q = model.project(R, p, sigma_position, sigma_rotation)
+        R_hat, p_hat, q = project_track(model, R, p, sigma_position, sigma_rotation, ray_ratio)
     else:
         raise ValueError(f"correction must be 'chapter' or 'ml', got {correction!r}")
     rot, pos, chi2 = frame_residuals(R, p, R_hat, p_hat, sigma_position, sigma_rotation)
+    if ray_ratio != 1.0:
+        d = p_hat - p
+        v = p / np.maximum(np.linalg.norm(p, axis=1), 1e-12)[:, None]
+        d = d + v * (np.einsum('ni,ni->n', d, v) * (1.0 / ray_ratio - 1.0))[:, None]
+        chi2 = (rot / sigma_rotation) ** 2 + np.sum(d ** 2, axis=1) / sigma_position ** 2
     zero = np.zeros(3)
     inliers = np.ones(R.shape[0], bool) if inliers is None else inliers
     point_a, point_b = (getattr(model, 'point_in_a', zero), getattr(model, 'point_in_b', zero))

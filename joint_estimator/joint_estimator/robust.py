@@ -13,18 +13,19 @@ inlier set is stable.
 **Candidate poses per frame.** A frame may carry several candidate poses (``(N, K, 3, 3)``
 orientations, ``(N, K, 3)`` positions): the measured pose first, then its ambiguous twins
 (:mod:`joint_estimator.ambiguity`). Every hypothesis uses, per frame, the candidate with the
-smallest residual, so a flipped pose whose twin fits the joint is *repaired* rather than
-rejected; the frames are reported (``choice != 0``). Minimal sets draw a random candidate per
-frame.
+smallest residual (a twin is charged ``ln(6 N)``, the BIC's price of a fitted choice), so a
+flipped pose whose twin fits the joint is *repaired* rather than rejected; the frames are
+reported (``choice != 0``). Minimal sets draw a random candidate per frame.
 
 **Noise scale.** With ``sigma_position`` / ``sigma_rotation`` None, the scales are estimated from
-the data: for each hypothesis from the median of its per-frame rotation angles and position
-distances (a 3-d Gaussian residual has median norm ``1.538 sigma``), the hypothesis cost then
+the data: for each hypothesis from the 30 % quantile of its per-frame rotation angles and
+position distances (a 3-d Gaussian residual's norm has that quantile at ``1.19 sigma``; the
+estimate survives 70 % outliers), the hypothesis cost then
 being ``sum_t min(chi2_t, threshold) + 6 N ln(sigma_rot sigma_pos)`` (the -2 log-likelihood of
 the truncated Gaussian up to constants, so that a hypothesis cannot win by inflating its
-scale); after selection, from the RMS residual of the inliers (corrected for the joint
-coordinates and model parameters fitted), iterated with the inlier classification until both
-are stable. Given sigmas are used as they are.
+scale); after selection, from the RMS residual of the inliers, corrected for what the joint's
+coordinates absorb (:func:`residual_shrinkage`, by simulation) and for the model parameters,
+iterated with the inlier classification until both are stable. Given sigmas are used as they are.
 """
 
 from __future__ import annotations
@@ -33,21 +34,25 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2 as chi2_dist
 
-from joint_estimator.common import DegenerateMotionError, JOINT_DOF, JointType
+from joint_estimator.common import DegenerateMotionError, JointType
 from joint_estimator.models import DEFAULT_MIN_TRANSLATION_RANGE, fit_model, MIN_SAMPLES
 from joint_estimator.refine import is_refinable, refine_model
-from joint_estimator.revolute import DEFAULT_MIN_ROTATION_RANGE
+from joint_estimator.revolute import DEFAULT_MIN_ROTATION_RANGE, project_track
 
 __all__ = ['DEFAULT_THRESHOLD', 'MEDIAN_NORM_3D', 'MIN_SIGMA_POSITION', 'MIN_SIGMA_ROTATION',
            'RobustFit', 'frame_chi2', 'candidate_residuals', 'line_of_sight_ratio',
-           'median_scales', 'rms_scales', 'robust_fit']
+           'median_scales', 'rms_scales', 'residual_shrinkage', 'robust_fit']
 
 #: Per-frame chi-square above which a frame is an outlier (99.9 % quantile, 6 dof).
 DEFAULT_THRESHOLD = float(chi2_dist.ppf(0.999, 6))
 #: Median of the norm of a 3-d standard normal vector (sqrt of chi-square(3)'s median).
 MEDIAN_NORM_3D = float(np.sqrt(chi2_dist.ppf(0.5, 3)))
+#: Quantile of the residual norms that sets a hypothesis' noise scale (breakdown 70 %).
+SCALE_QUANTILE = 0.3
+_QUANTILE_NORM_3D = float(np.sqrt(chi2_dist.ppf(SCALE_QUANTILE, 3)))
 #: Floors of the estimated noise scales (noise-free data would give zero).
 MIN_SIGMA_POSITION = 1e-6
 MIN_SIGMA_ROTATION = 1e-6
@@ -61,7 +66,8 @@ def _angles_from_chordal(c: np.ndarray) -> np.ndarray:
 
 
 def candidate_residuals(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
-                        sigma_rotation: float, ray_ratio: float = 1.0) -> tuple:
+                        sigma_rotation: float, ray_ratio: float = 1.0,
+                        exact: bool = True) -> tuple:
     """Rotation angle [rad] and position distance [m] of every candidate about ``model``.
 
     :param R: (N, K, 3, 3) candidate orientations; :param p: (N, K, 3) candidate positions.
@@ -72,9 +78,8 @@ def candidate_residuals(model, R: np.ndarray, p: np.ndarray, sigma_position: flo
     """
     n, k = R.shape[:2]
     Rf, pf = R.reshape(n * k, 3, 3), p.reshape(n * k, 3)
-    # joint coordinates from positions weighted as noisy as along the line of sight: the
-    # closed-form projections are isotropic, and depth noise must not drive them
-    R_hat, p_hat, _ = model.project(Rf, pf, sigma_position * ray_ratio, sigma_rotation)
+    R_hat, p_hat, _ = project_track(model, Rf, pf, sigma_position, sigma_rotation, ray_ratio,
+                                    exact)
     rot = _angles_from_chordal(3.0 - np.einsum('nij,nij->n', R_hat, Rf))
     d = p_hat - pf
     if ray_ratio != 1.0:
@@ -83,6 +88,15 @@ def candidate_residuals(model, R: np.ndarray, p: np.ndarray, sigma_position: flo
         d = d + np.outer(along, np.ones(3)) * v * (1.0 / ray_ratio - 1.0)
     pos = np.linalg.norm(d, axis=1)
     return rot.reshape(n, k), pos.reshape(n, k)
+
+
+def frame_chi2(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
+               sigma_rotation: float) -> np.ndarray:
+    """Noise-normalised squared residual (N,) of each frame (one pose per frame: R (N, 3, 3),
+    p (N, 3)) about its projection on ``model`` (isotropic noise)."""
+    rot, pos = candidate_residuals(model, R[:, None], p[:, None], sigma_position,
+                                   sigma_rotation)
+    return (rot[:, 0] / sigma_rotation) ** 2 + (pos[:, 0] / sigma_position) ** 2
 
 
 def line_of_sight_ratio(p: np.ndarray, max_ratio: float = 100.0,
@@ -116,11 +130,15 @@ def line_of_sight_ratio(p: np.ndarray, max_ratio: float = 100.0,
     return float(np.clip(np.sqrt(float(np.median(along2)) / 0.4549 / den), 1.0, max_ratio))
 
 
-def median_scales(rot: np.ndarray, pos: np.ndarray) -> tuple:
+def median_scales(rot: np.ndarray, pos: np.ndarray, quantile: float = SCALE_QUANTILE) -> tuple:
     """Robust noise scales ``(sigma_position [m], sigma_rotation [rad])`` from per-frame residual
-    norms (each the norm of a 3-d Gaussian vector): median / 1.538, floored."""
-    return (max(float(np.median(pos)) / MEDIAN_NORM_3D, MIN_SIGMA_POSITION),
-            max(float(np.median(rot)) / MEDIAN_NORM_3D, MIN_SIGMA_ROTATION))
+    norms (each the norm of a 3-d Gaussian vector): their ``quantile`` over the same quantile of
+    the norm of a standard 3-d normal vector (the median, 1.538, for 0.5), floored. The default
+    0.3 keeps the estimate when up to 70 % of the frames are outliers."""
+    ref = (_QUANTILE_NORM_3D if quantile == SCALE_QUANTILE
+           else float(np.sqrt(chi2_dist.ppf(quantile, 3))))
+    return (max(float(np.quantile(pos, quantile)) / ref, MIN_SIGMA_POSITION),
+            max(float(np.quantile(rot, quantile)) / ref, MIN_SIGMA_ROTATION))
 
 
 def rms_scales(rot: np.ndarray, pos: np.ndarray, dof: int, n_params: int) -> tuple:
@@ -132,6 +150,37 @@ def rms_scales(rot: np.ndarray, pos: np.ndarray, dof: int, n_params: int) -> tup
     f = 6.0 * n / free
     return (max(float(np.sqrt(f * np.sum(pos ** 2) / (3 * n))), MIN_SIGMA_POSITION),
             max(float(np.sqrt(f * np.sum(rot ** 2) / (3 * n))), MIN_SIGMA_ROTATION))
+
+
+def residual_shrinkage(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
+                       sigma_rotation: float, ray_ratio: float = 1.0, replicas: int = 4,
+                       seed: int = 0) -> tuple:
+    """How much of the noise the model's projection absorbs, per component, by simulation:
+    noise of the given scales (positions ``ray_ratio`` times noisier along the line of sight)
+    is added to the frames' projections on the model and projected again.
+
+    A joint's coordinates absorb part of the noise (a slide takes a position component, an
+    angle takes position or orientation noise depending on which is more precise), so the
+    residuals underestimate the noise by a factor that depends on the joint and on the ratio
+    of the scales; :func:`robust_fit` divides the residuals' mean square by these factors.
+
+    :returns: ``(position factor, rotation factor)``: mean squared residual over the simulated
+        noise's mean square (each in (0, 1]).
+    """
+    R_hat, p_hat, _ = project_track(model, R, p, sigma_position, sigma_rotation, ray_ratio)
+    rng = np.random.default_rng(seed)
+    n = R.shape[0]
+    R_sim = np.concatenate([Rotation.from_rotvec(rng.normal(0.0, sigma_rotation, (n, 3)))
+                            .as_matrix() @ R_hat for _ in range(replicas)])
+    p_rep = np.concatenate([p_hat] * replicas)
+    e = rng.normal(0.0, sigma_position, p_rep.shape)
+    v = p_rep / np.maximum(np.linalg.norm(p_rep, axis=1), 1e-12)[:, None]
+    e = e + v * (np.einsum('ni,ni->n', e, v) * (ray_ratio - 1.0))[:, None]
+    rot, pos = candidate_residuals(model, R_sim[:, None], (p_rep + e)[:, None], sigma_position,
+                                   sigma_rotation, ray_ratio)
+    f_p = float(np.mean(pos ** 2)) / (3.0 * sigma_position ** 2)
+    f_r = float(np.mean(rot ** 2)) / (3.0 * sigma_rotation ** 2)
+    return min(max(f_p, 0.05), 1.0), min(max(f_r, 0.05), 1.0)
 
 
 @dataclass
@@ -161,7 +210,7 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
                min_rotation_range: float = DEFAULT_MIN_ROTATION_RANGE,
                min_translation_range: float = DEFAULT_MIN_TRANSLATION_RANGE,
                threshold: float = DEFAULT_THRESHOLD, confidence: float = 0.99,
-               max_iterations: int = 100, min_iterations: int = 10,
+               max_iterations: int = 100, min_iterations: Optional[int] = None,
                refine: bool = True, rng: Optional[np.random.Generator] = None,
                max_rounds: int = 8, ray_ratio: float = 1.0) -> RobustFit:
     """Fit ``joint_type`` robustly, choosing one candidate pose per frame.
@@ -172,6 +221,10 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
     :param sigma_rotation: orientation noise std [rad] per axis, None to estimate it.
     :param threshold: per-frame chi-square above which a frame is rejected.
     :param confidence: RANSAC stopping confidence of having drawn one all-inlier set.
+    :param min_iterations: fewest hypotheses drawn; default 10 with given noise levels and one
+        pose per frame, else 50 (an estimated scale makes every hypothesis look mostly
+        inlier, so the adaptive stopping rule would stop too early).
+    :param max_iterations: most hypotheses drawn.
     :param refine: refit axis joints by maximum likelihood (:mod:`joint_estimator.refine`).
     :param max_rounds: refit / re-classify rounds after the hypothesis search.
     :param ray_ratio: position noise along the line of sight from B's origin over the noise
@@ -190,20 +243,27 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
     fix_p, fix_r = sigma_position is not None, sigma_rotation is not None
     estimate = not (fix_p and fix_r)
     rows = np.arange(n)
+    # using a twin instead of the measured pose is one more fitted choice per frame: it costs
+    # what the BIC charges a parameter (joint_estimator.selection), so a twin is used only
+    # where it fits clearly better
+    twin_penalty = np.zeros((1, k))
+    twin_penalty[0, 1:] = np.log(6.0 * n)
+    if min_iterations is None:
+        min_iterations = 50 if (estimate or k > 1) else 10
 
     def with_given(sp, sr):
         return (sigma_position if fix_p else sp, sigma_rotation if fix_r else sr)
 
     start = with_given(*_START_SIGMAS)
 
-    def evaluate(model, scales=None):
+    def evaluate(model, scales=None, exact=True):
         """(cost, chi2 (N,), choice (N,), scales) of a model; scales estimated if None."""
         sp, sr = start if scales is None else scales
-        rot, pos = candidate_residuals(model, R, p, sp, sr, ray_ratio)
+        rot, pos = candidate_residuals(model, R, p, sp, sr, ray_ratio, exact)
         if scales is None and estimate:
-            choice = np.argmin((rot / sr) ** 2 + (pos / sp) ** 2, axis=1)
+            choice = np.argmin((rot / sr) ** 2 + (pos / sp) ** 2 + twin_penalty, axis=1)
             sp, sr = with_given(*median_scales(rot[rows, choice], pos[rows, choice]))
-        c2 = (rot / sr) ** 2 + (pos / sp) ** 2
+        c2 = (rot / sr) ** 2 + (pos / sp) ** 2 + twin_penalty
         choice = np.argmin(c2, axis=1)
         c2 = c2[rows, choice]
         cost = float(np.minimum(c2, threshold).sum())
@@ -222,7 +282,7 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
     best, best_model, needed = None, None, max_iterations
     try:
         full = fit_model(jt, R[:, 0], p[:, 0], min_rotation_range, min_translation_range)
-        best, best_model = evaluate(full), full
+        best, best_model = evaluate(full, exact=False), full
         needed = iterations_needed(best[1])
     except DegenerateMotionError:
         pass          # outliers can fake (or hide) motion: let the minimal sets decide
@@ -235,7 +295,7 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
             hyp = fit_model(jt, R[idx, pick], p[idx, pick], 0.0, 0.0)
         except (DegenerateMotionError, np.linalg.LinAlgError):
             continue
-        res = evaluate(hyp)
+        res = evaluate(hyp, exact=False)
         if best is None or res[0] < best[0]:
             best, best_model = res, hyp
             needed = iterations_needed(res[1])
@@ -269,8 +329,15 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
         if estimate:
             ok = c2_new < threshold
             if ok.sum() >= m:
-                new_scales = with_given(*rms_scales(rot[ok], pos[ok], JOINT_DOF[jt],
-                                                    model.n_params))
+                f_p, f_r = residual_shrinkage(model, R[rows, choice_new][ok],
+                                              p[rows, choice_new][ok], *scales, ray_ratio)
+                n_ok = int(ok.sum())
+                k_corr = 6.0 * n_ok / max(6.0 * n_ok - model.n_params, 1.0)
+                new_scales = with_given(
+                    max(float(np.sqrt(k_corr * np.mean(pos[ok] ** 2) / (3.0 * f_p))),
+                        MIN_SIGMA_POSITION),
+                    max(float(np.sqrt(k_corr * np.mean(rot[ok] ** 2) / (3.0 * f_r))),
+                        MIN_SIGMA_ROTATION))
                 cost, c2_new, choice_new, _, _, _ = evaluate(model, new_scales)
         new = c2_new < threshold
         stable = (np.array_equal(new, inliers) and np.array_equal(choice_new, choice)

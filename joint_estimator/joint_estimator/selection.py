@@ -5,14 +5,15 @@ frames, flipped marker poses repaired with their ambiguous twin, noise scales es
 the data unless given) and scored by its -2 log-likelihood plus the BIC penalty::
 
     BIC = sum_{inliers} (chi2_t + 6 ln(2 pi s_rot s_pos)) + n_out * c_out
-          + (n_params + dof * n_in) * ln(6 N)
+          + (n_params + dof * n_in + n_repaired) * ln(6 N)
 
 with ``chi2_t`` the frame's residual normalised by the type's noise scales ``s_rot``, ``s_pos``
 (6 observed values per frame; with estimated scales each type has its own, so a type that fits
 worse pays through its larger scales and not through the user's guess of the noise), ``c_out``
 the -2 log-likelihood of a frame under the uniform outlier density of MLESAC's mixture
 (:func:`outlier_cost`; at least the rejection threshold's), and the joint coordinates of each
-inlier frame counted as free parameters (otherwise a 3-dof model always beats a 1-dof one).
+inlier frame counted as free parameters (otherwise a 3-dof model always beats a 1-dof one), and
+so is the choice of each pose replaced by its ambiguity twin (``n_repaired``).
 Lower is better. Types whose motion is degenerate (e.g. a revolute axis from too small a
 rotation range) are not scored; the reason is kept in :attr:`JointEstimation.failures`.
 
@@ -108,6 +109,8 @@ def bic_score(fit: JointFit, outlier_cost_value: float) -> float:
     n = fit.chi2.shape[0]
     n_in = int(fit.inliers.sum())
     k = fit.n_params + JOINT_DOF[fit.joint_type] * n_in
+    if fit.repaired is not None:          # each twin used is a fitted choice
+        k += int((fit.repaired & fit.inliers).sum())
     norm = 6.0 * np.log(2.0 * np.pi * fit.sigma_position * fit.sigma_rotation)
     return float(fit.chi2[fit.inliers].sum() + n * norm + outlier_cost_value * (n - n_in)
                  + k * np.log(6.0 * n))
@@ -281,13 +284,8 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
             result.failures[t] = str(e)
             continue
         R_sel, p_sel = Rc[rows, choice], pc[rows, choice]
-        fit = make_fit(model, R_sel, p_sel, sp * ray_ratio, sr, correction, inliers)
-        fit.sigma_position = sp
-        if ray_ratio != 1.0:      # the residuals with the depth component whitened
-            rot, pos = candidate_residuals(model, R_sel[:, None], p_sel[:, None], sp, sr,
-                                           ray_ratio)
-            fit.chi2 = (rot[:, 0] / sr) ** 2 + (pos[:, 0] / sp) ** 2
-        fit.repaired = choice != 0
+        fit = make_fit(model, R_sel, p_sel, sp, sr, correction, inliers, ray_ratio)
+        fit.repaired = (choice != 0) & fit.inliers      # twins used by inlier frames
         fit.scale_estimated = estimated or (t == JointType.SPHERICAL and sigma_rotation is None)
         fit.extra['line_of_sight_noise_ratio'] = ray_ratio
         fit.score = bic_score(fit, max(threshold, outlier_cost(sp, sr)))

@@ -100,11 +100,67 @@ def test_bad_poses_are_counted_and_the_node_keeps_running(ros_node, estimator):
     for i, T in enumerate(noisy):
         pub.publish(_stamped(T, (i + 1) * 10 ** 8, 'b'))
         _spin_both([ros_node, estimator], lambda: False, timeout=0.02)
-    pub.publish(_stamped(noisy[0], 10 ** 8, 'b'))                 # stamp going backwards
+    # a stamp slightly behind the newest (reordering, within stamp_reset_threshold)
+    pub.publish(_stamped(noisy[0], 40 * 10 ** 8 - 10 ** 7, 'b'))
     assert _spin_both([ros_node, estimator],
                       lambda: estimator.counts['rejected'] >= 3 and len(got) >= 2)
-    assert estimator.counts['rejected'] == 3
+    assert estimator.counts['rejected'] == 3 and estimator.counts['resets'] == 0
     assert got[-1].joint_type == JointEstimate.REVOLUTE
+
+
+@pytest.mark.ros
+def test_stamps_jumping_back_reset_the_window_and_estimates_resume(ros_node, estimator):
+    """A source restart / bag loop (#16): the stamps start again from the beginning. The
+    window is cleared once per event (not every later pose rejected) and estimates resume from
+    the new poses only."""
+    g, noisy = _door()
+    got = []
+    ros_node.create_subscription(JointEstimate, 'joint_estimate', got.append, 10)
+    pub = ros_node.create_publisher(PoseStamped, 'relative_pose', 10)
+    assert _spin_both([ros_node, estimator], lambda: pub.get_subscription_count() > 0)
+    for loop in range(2):                 # the same 40 poses twice, stamps restarting
+        for i, T in enumerate(noisy):
+            pub.publish(_stamped(T, (i + 1) * 10 ** 8, 'b'))
+            _spin_both([ros_node, estimator], lambda: False, timeout=0.02)
+        assert _spin_both([ros_node, estimator],
+                          lambda: len(got) >= 3 * (loop + 1)), (loop, len(got))
+    assert estimator.counts['resets'] == 1 and estimator.counts['rejected'] == 0
+    counts = [m.sample_count for m in got]
+    # first pass: windows of 20, 30, 40; after the restart: 20, 30, 40 again (not 40+)
+    assert counts == [20, 30, 40, 20, 30, 40], counts
+    last = got[-1]
+    assert last.joint_type == JointEstimate.REVOLUTE and '1 source restarts' in last.status
+    axis = np.array([last.axis_in_b.x, last.axis_in_b.y, last.axis_in_b.z])
+    assert np.degrees(np.arccos(min(1.0, abs(axis @ g.axis_in_b)))) < 2.0
+
+
+@pytest.mark.ros
+def test_two_link_stamps_jumping_back_reset_the_pairing(ros_node):
+    node = JointEstimatorNode(context=ros_node.context, parameter_overrides=[
+        Parameter('min_poses', value=20), Parameter('estimate_every', value=20),
+        Parameter('joint_type', value='revolute')])
+    try:
+        g, noisy = _door(20, seed=4)
+        link_b = np.tile(np.eye(4), (20, 1, 1))
+        link_b[:, :3, 3] = [0.1, 0.0, 1.0]
+        link_a = link_b @ noisy
+        got = []
+        ros_node.create_subscription(JointEstimate, 'joint_estimate', got.append, 10)
+        pa = ros_node.create_publisher(PoseStamped, 'link_a_pose', 10)
+        pb = ros_node.create_publisher(PoseStamped, 'link_b_pose', 10)
+        assert _spin_both([ros_node, node], lambda: pa.get_subscription_count() > 0
+                          and pb.get_subscription_count() > 0)
+        for loop in range(2):
+            for i in range(20):
+                pb.publish(_stamped(link_b[i], (i + 1) * 10 ** 8, 'cam'))
+                pa.publish(_stamped(link_a[i], (i + 1) * 10 ** 8, 'cam'))
+                _spin_both([ros_node, node], lambda: False, timeout=0.01)
+            assert _spin_both([ros_node, node], lambda: len(got) >= loop + 1), loop
+        assert node.counts['resets'] == 1
+        assert [m.sample_count for m in got] == [20, 20]
+        assert got[-1].joint_type == JointEstimate.REVOLUTE
+    finally:
+        node.destroy_node()
 
 
 @pytest.mark.ros
@@ -146,6 +202,8 @@ def test_parameters_are_validated(estimator):
     bad = estimator.set_parameters([Parameter('joint_type', value='hinge')])[0]
     assert not bad.successful and 'joint_type must be one of' in bad.reason
     assert not estimator.set_parameters([Parameter('sigma_position', value=-1.0)])[0].successful
+    bad = estimator.set_parameters([Parameter('marker_normal_axis', value='w')])[0]
+    assert not bad.successful and 'marker_normal_axis' in bad.reason
     assert not estimator.set_parameters([Parameter('window_size', value=10)])[0].successful
     assert estimator.set_parameters([Parameter('joint_type', value='prismatic')])[0].successful
 
@@ -164,6 +222,12 @@ def test_service_batch_estimate_and_bad_requests(ros_node, estimator):
     res = _call(ros_node, estimator, req)
     assert res.success, res.message
     assert res.estimate.joint_type == JointEstimate.REVOLUTE
+    # the honest part of the estimate reaches the service response
+    assert len(res.coordinates) == 50 and np.all(np.diff(res.coordinates) * np.sign(
+        res.coordinates[-1] - res.coordinates[0]) > -0.05)      # unwrapped, monotone motion
+    assert res.estimate.inlier_coverage > 0.9 and not res.estimate.warnings
+    assert 0 < res.estimate.axis_angle_std_in_b < np.deg2rad(2.0)
+    assert not res.estimate.noise_estimated          # the fixture gives the noise levels
     T_c, s_c = path_to_matrices(res.corrected_track)
     np.testing.assert_array_equal(s_c, stamps)
     assert np.mean(np.linalg.norm(T_c[:, :3, 3] - g.poses[:, :3, 3], axis=1)) < np.mean(
@@ -192,13 +256,16 @@ def test_installed_executable_serves_the_estimate_service(ros_node):
     g, noisy = _door(40, seed=9)
     stamps = (np.arange(40) + 1) * 10 ** 7
     with start_executable('joint_estimator', 'joint_estimator_node',
-                          ros_args=['-p', 'input_mode:=relative', '-p',
-                                    'sigma_position:=0.001', '-p', 'sigma_rotation:=0.0175'],
+                          ros_args=['-p', 'input_mode:=relative'],
                           observer=ros_node, wait_for_node='joint_estimator') as proc:
         res = _call(ros_node, None, EstimateJoint.Request(
             link_a=matrices_to_path(noisy, 'base', stamps), joint_type=255))
         assert res.success, proc.output()
         assert res.estimate.joint_type == JointEstimate.REVOLUTE
+        # default: noise estimated from the data, near the true 1 mm / 1 deg
+        assert res.estimate.noise_estimated
+        assert 0.0005 < res.estimate.position_noise < 0.002
+        assert np.deg2rad(0.5) < res.estimate.rotation_noise < np.deg2rad(2.0)
         # streaming through the process too
         got = []
         ros_node.create_subscription(JointEstimate, 'joint_estimate', got.append, 10)

@@ -6,6 +6,7 @@ import subprocess
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from joint_estimator.common import JointType
 from joint_estimator.offline import main, read_csv_track
@@ -135,3 +136,43 @@ def test_installed_command(hinge, tmp_path):
                           str(tmp_path / 'nope.csv')], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and 'cannot read' in bad.stderr
+
+
+def test_defaults_repair_flips_estimate_noise_and_report_coverage(tmp_path, capsys):
+    """A door marker seen by a camera, 25 % of the poses flipped (IPPE twin), no noise levels
+    given: the JSON reports the repaired frames, the estimated noise, the inliers' coverage,
+    the axis uncertainty and unwrapped coordinates crossing +-180 deg."""
+    from joint_estimator.ambiguity import marker_twins
+    from joint_estimator.common import compose_track, rotations_about_axis
+    rng = np.random.default_rng(11)
+    n = 120
+    axis, hinge = np.array([0.0, 1.0, 0.0]), np.array([-0.2, 0.0, 1.0])
+    R0 = np.diag([1.0, -1.0, -1.0])
+    q = np.deg2rad(np.linspace(130.0, 230.0, n))          # crosses 180 deg
+    Rq = rotations_about_axis(axis, q - np.pi)
+    truth = compose_track(rotations_about_axis(axis, q) @ R0,
+                          hinge + np.einsum('nij,j->ni', Rq, [0.35, 0.05, 0.0]))
+    noisy = add_noise(truth, SP, SR, rng)
+    flipped = np.zeros(n, bool)
+    flipped[rng.choice(n, n // 4, replace=False)] = True
+    noisy[flipped] = marker_twins(noisy[flipped])
+    path, out = tmp_path / 'door.csv', tmp_path / 'door.json'
+    _write_csv(path, ['x', 'y', 'z', 'qx', 'qy', 'qz', 'qw'], _rows(noisy))
+    assert main(['--csv', str(path), '--output', str(out)]) == 0
+    est = json.loads(out.read_text())
+    assert est['joint_type'] == 'revolute', est['status']
+    twin_angle = np.degrees(np.linalg.norm(Rotation.from_matrix(
+        marker_twins(noisy[flipped])[:, :3, :3] @ np.transpose(noisy[flipped, :3, :3], (0, 2, 1))
+    ).as_rotvec(), axis=1))
+    assert set(np.flatnonzero(flipped)[twin_angle > 5.0]) <= set(est['repaired_indices'])
+    assert set(est['repaired_indices']) <= set(np.flatnonzero(flipped))
+    assert est['noise']['estimated']
+    assert est['noise']['sigma_position_m'] == pytest.approx(SP, rel=0.3)
+    assert est['coverage']['fraction'] > 0.95 and est['warnings'] == []
+    coords = np.degrees(np.array(est['coordinates'])[:, 0])
+    assert np.ptp(coords) == pytest.approx(100.0, abs=3.0)         # unwrapped: not 359 deg
+    assert 0 < est['axis_uncertainty']['axis_angle_std_in_b_rad'] < np.deg2rad(1.0)
+    # the reported point lies by the data, the minimum-norm one need not
+    centre = noisy[:, :3, 3].mean(axis=0)
+    assert np.linalg.norm(np.array(est['point_in_b']) - centre) < 0.4
+    assert 'flipped poses repaired' in capsys.readouterr().out
