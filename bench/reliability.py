@@ -46,6 +46,7 @@ from stereo_manip_tools.bench_report import goal, results_dir, write_report  # n
 
 NAME = 'reliability'
 NS = '/reliability'          # the graph's namespace (apart from the fuzz targets' topics)
+#                              (--namespace: a kill run and a soak run in parallel)
 
 
 def _stats(values: List[float]) -> Dict[str, float]:
@@ -549,6 +550,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--quick', action='store_true',
                         help='smoke run: 30 fuzz cases, 2-minute soak (not a result)')
     parser.add_argument('--out', default=None, help='results directory')
+    parser.add_argument('--namespace', default=NS, help='namespace of the graph')
     parser.add_argument('--merge', nargs='*', default=[],
                         help='reliability.json files of runs made in parallel (e.g. one per '
                              'fuzz node): their sections are merged in (fuzz per node)')
@@ -556,6 +558,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     if opts.quick:
         opts.fuzz_cases, opts.soak_minutes, opts.warmup = 30, 2.0, 30.0
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    global NS
+    NS = opts.namespace
     out_dir = Path(opts.out) if opts.out else results_dir()
     path = out_dir / f'{NAME}.json'
     previous = json.loads(path.read_text()) if path.exists() else {}
