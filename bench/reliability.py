@@ -538,6 +538,7 @@ def goals_of(sections: Dict[str, Any], cases_goal: int) -> List[Dict[str, Any]]:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    global NS
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--sections', nargs='+', default=['fuzz', 'kill', 'soak', 'recorder'],
                         choices=['fuzz', 'kill', 'soak', 'recorder'])
@@ -558,7 +559,6 @@ def main(argv: Optional[List[str]] = None) -> int:
     if opts.quick:
         opts.fuzz_cases, opts.soak_minutes, opts.warmup = 30, 2.0, 30.0
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    global NS
     NS = opts.namespace
     out_dir = Path(opts.out) if opts.out else results_dir()
     path = out_dir / f'{NAME}.json'
