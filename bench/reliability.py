@@ -36,7 +36,7 @@ import signal
 import sys
 import tempfile
 import time
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
 
@@ -295,29 +295,33 @@ def kill_trial(victim: str, rate: float, timeout: float, log) -> Dict[str, Any]:
         if not graph.spin_until(lambda: len(graph.arrivals['corrected']) >= 20, 180.0):
             raise RuntimeError('no corrected poses from the graph:\n' + '\n'.join(
                 f'--- {n}\n{p.output()[-1500:]}' for n, p in graph.procs.items()))
-        # Kill once 20 corrected poses in a row were right, inside the scene's first loop (the
-        # camera starts at frame 0 when the graph is up; at the loop the peg jumps 18 cm and
-        # the localiser must re-acquire it, which would mix into the measurement): the window
-        # for the resumption ends 0.5 s before the loop.
-        loop_start = graph.arrivals['truth'][0][1] if graph.arrivals['truth'] else None
+        # Kill once 20 corrected poses in a row were right; the window for the resumption ends
+        # 0.5 s before the scene loops (at the loop the peg jumps 18 cm and the localiser must
+        # re-acquire it, which would mix into the measurement). The scene frame is counted
+        # from the camera's truth messages (frame 0 first; the camera starts last).
 
         def steady_ok() -> bool:
             last = graph.kept['corrected'][-20:]
             return len(last) == 20 and all(
                 (e := judge.error(s, d)) is not None and e <= WRONG_POSE_M for s, d in last)
-        graph.spin_until(steady_ok, 15.0)
+
+        def early_in_loop() -> bool:
+            return steady_ok() and (len(graph.arrivals['truth']) - 1) % SCENE_FRAMES < 120
+        graph.spin_until(early_in_loop, 60.0)
         before = len(graph.kept['corrected'])
         steady = [judge.error(s, d) for s, d in graph.kept['corrected'][-20:]]
-        loop_end = loop_start + SCENE_FRAMES / rate if loop_start is not None else None
+        frame = (len(graph.arrivals['truth']) - 1) % SCENE_FRAMES
+        loop_start = time.monotonic() - frame / rate
+        loop_end = loop_start + SCENE_FRAMES / rate
         pids_before = graph.pids()
         kill_wall_ns = time.time_ns()
         t_kill = time.monotonic()
         os.kill(pids_before[victim], signal.SIGKILL)
         graph.procs[victim].process.wait(10.0)
         killed_output = graph.procs[victim].output()[-2000:]
-        if graph.specs[victim].executable == 'synthetic_camera' and loop_start is not None:
+        if graph.specs[victim].executable == 'synthetic_camera':
             # a real camera's world goes on: the restarted synthetic camera continues the scene
-            graph.start_node(victim, start_frame=int(round((t_kill - loop_start) * rate)))
+            graph.start_node(victim, start_frame=frame)
         else:
             graph.start_node(victim)
         t_restart = time.monotonic()
@@ -355,7 +359,7 @@ def kill_trial(victim: str, rate: float, timeout: float, log) -> Dict[str, Any]:
             'resume_window_s': window,
             'steady_state_correct_before_kill': bool(steady) and all(
                 e is not None and e <= WRONG_POSE_M for e in steady),
-            'killed_seconds_after_scene_start': (t_kill - loop_start) if loop_start else None,
+            'scene_frame_at_kill': frame,
             'resumed_correct': t_ok is not None,
             'seconds_kill_to_correct_corrected_pose': (t_ok - t_kill) if t_ok else None,
             'seconds_restart_to_correct_corrected_pose': (t_ok - t_restart) if t_ok else None,
@@ -375,9 +379,9 @@ def kill_trial(victim: str, rate: float, timeout: float, log) -> Dict[str, Any]:
     return result
 
 
-def run_kill(rate: float, timeout: float, log) -> Dict[str, Any]:
+def run_kill(rate: float, timeout: float, log, victims: Sequence[str] = ()) -> Dict[str, Any]:
     out: Dict[str, Any] = {}
-    for victim in [s.node_name for s in graph_specs(rate)]:
+    for victim in victims or [s.node_name for s in graph_specs(rate)]:
         out[victim] = kill_trial(victim, rate, timeout, log)
         log(f'  kill {victim}: ' + json.dumps(
             {k: v for k, v in out[victim].items() if not k.endswith('_tail')},
@@ -546,6 +550,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--fuzz-nodes', nargs='+', default=None)
     parser.add_argument('--rate', type=float, default=10.0, help='camera rate [Hz]')
     parser.add_argument('--kill-timeout', type=float, default=60.0)
+    parser.add_argument('--kill-nodes', nargs='+', default=None)
     parser.add_argument('--soak-minutes', type=float, default=10.0)
     parser.add_argument('--warmup', type=float, default=120.0)
     parser.add_argument('--quick', action='store_true',
@@ -568,8 +573,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     for other in opts.merge:
         data = json.loads(Path(other).read_text())
         for key, value in data.get('sections', {}).items():
-            if key == 'fuzz':
-                sections.setdefault('fuzz', {}).update(value)
+            if key in ('fuzz', 'kill'):
+                sections.setdefault(key, {}).update(value)
             else:
                 sections[key] = value
         for key, value in data.get('runs', {}).items():
@@ -590,7 +595,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             result = dict(sections.get('fuzz', {}))
             result.update(run_fuzz(opts.fuzz_cases, names, log))
         elif section == 'kill':
-            result = run_kill(opts.rate, opts.kill_timeout, log)
+            result = dict(sections.get('kill', {}))
+            result.update(run_kill(opts.rate, opts.kill_timeout, log, opts.kill_nodes or ()))
         elif section == 'soak':
             result = run_soak(opts.rate, opts.soak_minutes, opts.warmup, log)
         else:
