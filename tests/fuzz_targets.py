@@ -169,7 +169,7 @@ def contact_target() -> FuzzTarget:
 
 # --- joint_estimator ------------------------------------------------------------------------
 
-JOINT_POSES_PER_CYCLE = 8
+JOINT_POSES_PER_CYCLE = 16      # enough motion for an axis even with a few outliers
 JOINT_AXIS = np.array([0.0, 0.0, 1.0])
 JOINT_POINT = np.array([0.05, 0.0, 0.0])
 
@@ -178,7 +178,7 @@ def _joint_pair(i: int) -> Tuple[np.ndarray, np.ndarray]:
     """Link B fixed at 0.6 m; link A turning about B's z axis through JOINT_POINT."""
     from stereo_manip_tools.transforms import make_transform, rotation_about_axis
     T_b = make_transform(rotation_about_axis([1.0, 0.0, 0.0], 0.3), [0.0, 0.0, 0.6])
-    theta = 1.2 * np.sin(0.15 * i)
+    theta = 1.0 * np.sin(0.4 * i)      # +-57 deg within every 16 poses
     R = rotation_about_axis(JOINT_AXIS, theta)
     T_rel = make_transform(R, JOINT_POINT - R @ JOINT_POINT + [0.0, 0.0, 0.0])
     T_rel = T_rel @ make_transform(np.eye(3), [0.1, 0.0, 0.0])

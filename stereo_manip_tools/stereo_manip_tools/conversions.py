@@ -440,13 +440,17 @@ def _quat(q: Quaternion) -> np.ndarray:
 def pose_to_matrix(pose: Pose) -> np.ndarray:
     """``geometry_msgs/Pose`` to a 4x4 transform (child -> parent).
 
-    :raises ValueError: zero or non-finite quaternion, non-finite position.
+    :raises ValueError: zero or non-finite quaternion, non-finite position, or a position
+        beyond ``DEFAULT_MAX_ABS_COORDINATE`` (10 km: not a measurement, e.g. 1e30).
     """
     T = np.eye(4)
     T[:3, :3] = matrix_from_quaternion(_quat(pose.orientation))
     T[:3, 3] = point_to_numpy(pose.position)
     if not np.all(np.isfinite(T)):
         raise ValueError('pose has a non-finite position')
+    if np.any(np.abs(T[:3, 3]) > DEFAULT_MAX_ABS_COORDINATE):
+        raise ValueError(f'pose position {T[:3, 3]} m is beyond '
+                         f'{DEFAULT_MAX_ABS_COORDINATE:g} m: not a measurement')
     return T
 
 
