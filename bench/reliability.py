@@ -519,6 +519,9 @@ def goals_of(sections: Dict[str, Any], cases_goal: int) -> List[Dict[str, Any]]:
     soak = sections.get('soak')
     if soak:
         goals.append(goal('soak_nodes_died', 0, '==', len(soak['dead_at_end'])))
+        # not an acceptance point of the soak, shown because a wrong pose is worse than none
+        goals.append(goal('soak_corrected_pose_wrong_fraction_add_s_over_5mm', 0.0, '<=',
+                          soak.get('corrected_wrong_fraction', float('nan'))))
         for name, r in sorted(soak['rss'].items()):
             goals.append(goal(f'soak_{name}_rss_growth_fraction', 0.10, '<=',
                               r['growth_fraction']))
