@@ -131,7 +131,7 @@ class ObjectLocalizerNode(Node):
             description='optional hints of the start poses in the cloud frame, 7 numbers per '
                         'model in `models` order: x y z [m] qx qy qz qw; verified like any pose '
                         '(global search when they do not fit); unset = global search'))
-        self.declare_parameter('max_points', 400_000, int_descriptor(
+        self.declare_parameter('max_points', 100_000, int_descriptor(
             'clouds with more valid points are voxel-downsampled to at most this many '
             '(bounded work per cloud)', 1000, 5_000_000))
         self.declare_parameter('track_length', 300, int_descriptor(
