@@ -53,7 +53,9 @@ from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.tf import object_frame, PoseTfPublisher
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 from stereo_manip_tools.parameters import bool_descriptor as _bool, \
-    float_descriptor as _float, int_descriptor as _int, string_descriptor as _string
+    float_descriptor as _float, int_descriptor as _int, reject_nonfinite_parameters, \
+    string_descriptor as _string
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 
 __all__ = ['ContactCorrectionNode', 'main', 'model_path_problem']
 
@@ -98,6 +100,8 @@ class ContactCorrectionNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('contact_correction', **kwargs)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        reject_nonfinite_parameters(self)
+        self.rejections = InputRejections(self.get_logger())
         self.declare_parameter('moving_object', 'peg', _string(
             'model name (or OBJ/PLY/STL path) of the moving object', read_only=True))
         self.declare_parameter('fixed_object', 'hole_block', _string(
@@ -188,10 +192,12 @@ class ContactCorrectionNode(Node):
                        lambda: f'{object_frame(g("moving_object").value)}_corrected')
         self.state_pub = self.create_publisher(ContactState, 'contact_state', 10)
         self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
-        self.create_subscription(PoseStamped, 'moving_pose', self._on_moving,
+        self.create_subscription(PoseStamped, 'moving_pose',
+                                 self.rejections.guard(self._on_moving, 'moving_pose'),
                                  qos_profile_sensor_data)
         if not self._static_values():
-            self.create_subscription(PoseStamped, 'fixed_pose', self._on_fixed,
+            self.create_subscription(PoseStamped, 'fixed_pose',
+                                     self.rejections.guard(self._on_fixed, 'fixed_pose'),
                                      qos_profile_sensor_data)
         self.create_service(CorrectTrajectory, 'correct_trajectory', self._on_service)
         self.get_logger().info(
@@ -286,8 +292,9 @@ class ContactCorrectionNode(Node):
     # --- streaming input ------------------------------------------------------------------
 
     def _reject(self, what: str, why: str, key: str = 'rejected') -> None:
-        self.counts[key] += 1
-        self.get_logger().warning(f'{what} not corrected ({self.counts[key]} so far): {why}')
+        self.counts[key] += 1      # counted every time; the warning at most 1/s per reason
+        self.rejections.reject(f'{what}:{key}', f'{what} not corrected ({self.counts[key]} so '
+                               f'far): {why}')
 
     def _on_fixed(self, msg: PoseStamped) -> None:
         try:
@@ -403,7 +410,7 @@ class ContactCorrectionNode(Node):
 def main(args=None) -> None:
     """Run the node."""
     rclpy.init(args=args)
-    node = ContactCorrectionNode()
+    node = create_node_or_exit(ContactCorrectionNode, 'contact_correction_node')
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -19,7 +19,7 @@ from visualization_msgs.msg import Marker
 
 from ip_modeler.fitting import ImplicitPolynomialModel
 from ip_modeler.monomials import MONOMIAL_ORDER
-from stereo_manip_tools.conversions import pointcloud2_to_array
+from stereo_manip_tools.conversions import DEFAULT_MAX_ABS_COORDINATE, read_pointcloud2
 
 __all__ = ['model_to_msg', 'msg_to_model', 'mesh_to_marker', 'cloud_to_points']
 
@@ -83,16 +83,22 @@ def mesh_to_marker(vertices: np.ndarray, triangles: np.ndarray, header: Header, 
 
 def cloud_to_points(msg: PointCloud2, use_normals: bool = True
                     ) -> Tuple[np.ndarray, Optional[np.ndarray], int]:
-    """xyz [m] and, if present and wanted, normals of a cloud; non-finite rows are removed.
+    """xyz [m] and, if present and wanted, normals of a cloud; unusable rows are removed.
+
+    The layout is checked by :func:`stereo_manip_tools.conversions.read_pointcloud2`.
 
     :returns: (points (N, 3), normals (N, 3) or None, number of rows removed because a
-        coordinate or normal was NaN/inf).
+        coordinate or normal was NaN/inf, a coordinate exceeded
+        ``DEFAULT_MAX_ABS_COORDINATE``, or a normal was zero).
+    :raises stereo_manip_tools.conversions.PointCloudError: unreadable layout.
     """
     names = {f.name for f in msg.fields}
     has_normals = use_normals and all(n in names for n in NORMAL_FIELDS)
     fields = ('x', 'y', 'z') + (NORMAL_FIELDS if has_normals else ())
-    data = pointcloud2_to_array(msg, fields, skip_nans=False)
+    data = read_pointcloud2(msg, fields, drop_invalid=False).points
     ok = np.all(np.isfinite(data), axis=1)
+    with np.errstate(invalid='ignore'):
+        ok &= np.all(np.abs(data[:, :3]) <= DEFAULT_MAX_ABS_COORDINATE, axis=1)
     if has_normals:
         ok &= np.linalg.norm(data[:, 3:6], axis=1) > 1e-9
     data = data[ok]

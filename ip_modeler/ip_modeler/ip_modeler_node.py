@@ -40,7 +40,9 @@ from ip_modeler.fitting import DEFAULT_3L_OFFSET, estimate_normals, fit_implicit
 from ip_modeler.incremental_qr import STABILIZATION_MODES
 from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
-    input_qos_descriptor, input_qos_profile, int_descriptor as _int
+    input_qos_descriptor, input_qos_profile, int_descriptor as _int, \
+    reject_nonfinite_parameters
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 
 __all__ = ['IpModelerNode', 'main']
 
@@ -51,6 +53,7 @@ class IpModelerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('ip_modeler', **kwargs)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        reject_nonfinite_parameters(self)
         self.declare_parameter('max_degree', 8, _int(
             'highest polynomial degree tried', 1, MAX_SUPPORTED_DEGREE))
         self.declare_parameter('target_rms', 0.001, _float(
@@ -94,9 +97,13 @@ class IpModelerNode(Node):
         self._rng = np.random.default_rng(0)
         self.poly_pub = self.create_publisher(ImplicitPolynomial, 'implicit_polynomial', 10)
         self.marker_pub = self.create_publisher(Marker, 'zero_set_marker', 10)
-        self.create_subscription(PointCloud2, 'cloud', self._on_cloud,
+        self.rejections = InputRejections(self.get_logger())
+        self.create_subscription(PointCloud2, 'cloud',
+                                 self.rejections.guard(self._on_cloud, 'cloud'),
                                  input_qos_profile(self.get_parameter('input_qos').value))
-        self.create_service(FitImplicitPolynomial, 'fit_implicit_polynomial', self._on_service)
+        self.create_service(FitImplicitPolynomial, 'fit_implicit_polynomial',
+                            self.rejections.guard(self._on_service, 'fit_implicit_polynomial',
+                                                  default=self._failed_response))
         self.get_logger().info(
             f'ip_modeler: max degree {self.get_parameter("max_degree").value}, target RMS '
             f'{self.get_parameter("target_rms").value} m')
@@ -126,7 +133,8 @@ class IpModelerNode(Node):
     # --- fitting --------------------------------------------------------------------------
 
     def _status_counts(self) -> str:
-        return ', '.join(f'{k} {v}' for k, v in self.counts.items())
+        return (', '.join(f'{k} {v}' for k, v in self.counts.items())
+                + f' (rejected by reason: {self.rejections.summary()})')
 
     def fit_cloud(self, msg: PointCloud2, max_degree: int = 0, target_rms: float = 0.0
                   ) -> Tuple[ImplicitPolynomial, Marker]:
@@ -178,14 +186,21 @@ class IpModelerNode(Node):
             poly, marker = self.fit_cloud(msg)
         except ValueError as exc:
             self.counts['rejected'] += 1
-            self.get_logger().warning(f'cloud {self.counts["clouds"]} rejected: {exc} '
-                                      f'({self.counts["rejected"]} rejected so far)')
+            self.rejections.reject(getattr(exc, 'reason', 'unusable_cloud'),
+                                   f'cloud {self.counts["clouds"]} rejected: {exc}')
             return
         self.poly_pub.publish(poly)
         self.marker_pub.publish(marker)
         self.get_logger().info(
             f'fitted degree {poly.degree} to {poly.point_count} points: RMS distance '
             f'{poly.rms_distance * 1e3:.2f} mm, max {poly.max_distance * 1e3:.2f} mm')
+
+    def _failed_response(self, request: FitImplicitPolynomial.Request,
+                         response: FitImplicitPolynomial.Response, exc: Exception
+                         ) -> FitImplicitPolynomial.Response:
+        response.success = False
+        response.message = f'{type(exc).__name__}: {exc}'
+        return response
 
     def _on_service(self, request: FitImplicitPolynomial.Request,
                     response: FitImplicitPolynomial.Response
@@ -211,8 +226,9 @@ class IpModelerNode(Node):
 
 
 def main(args: Optional[List[str]] = None) -> None:
+    """Run the node (bad start-up parameters: one line on stderr, exit code 1)."""
     rclpy.init(args=args)
-    node = IpModelerNode()
+    node = create_node_or_exit(IpModelerNode, 'ip_modeler_node')
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -59,7 +59,9 @@ from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.sync import StampSynchronizer
 from stereo_manip_tools.tf import object_frame, PoseTfPublisher
 from stereo_manip_tools.parameters import (
-    float_descriptor as _float, int_descriptor as _int, string_descriptor as _string)
+    float_descriptor as _float, int_descriptor as _int, reject_nonfinite_parameters,
+    string_descriptor as _string)
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 
 __all__ = ['JointEstimatorNode', 'estimation_to_msg', 'estimation_to_marker', 'JOINT_TYPE_NAMES',
            'main']
@@ -145,6 +147,9 @@ class JointEstimatorNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('joint_estimator', **kwargs)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        reject_nonfinite_parameters(self)
+        self.rejections = InputRejections(self.get_logger())
+        guard = self.rejections.guard
         self.declare_parameter('input_mode', 'two_links', _string(
             "'two_links' (link_a_pose + link_b_pose in a common frame) or 'relative' "
             '(relative_pose: link A in link B)', read_only=True))
@@ -225,15 +230,16 @@ class JointEstimatorNode(Node):
                          history=qos_profile_sensor_data.history)
         self.sync: Optional[StampSynchronizer] = None
         if mode == 'relative':
-            self.create_subscription(PoseStamped, 'relative_pose', self._on_relative, qos)
+            self.create_subscription(PoseStamped, 'relative_pose',
+                                     guard(self._on_relative, 'relative_pose'), qos)
         else:
             tol = int(round(self.get_parameter('sync_tolerance').value * 1e9))
             self._sync_tolerance_ns = tol
             self.sync = StampSynchronizer(('a', 'b'), tolerance_ns=tol, queue_size=50)
             self.create_subscription(PoseStamped, 'link_a_pose',
-                                     lambda m: self._on_link(m, 'a'), qos)
+                                     guard(lambda m: self._on_link(m, 'a'), 'link_a_pose'), qos)
             self.create_subscription(PoseStamped, 'link_b_pose',
-                                     lambda m: self._on_link(m, 'b'), qos)
+                                     guard(lambda m: self._on_link(m, 'b'), 'link_b_pose'), qos)
         self.get_logger().info(f'joint_estimator: input {mode}, window '
                                f'{self.window.maxlen}, joint type '
                                f'{self.get_parameter("joint_type").value}')
@@ -294,8 +300,9 @@ class JointEstimatorNode(Node):
     # --- streaming input ------------------------------------------------------------------
 
     def _reject(self, what: str, why: str) -> None:
-        self.counts['rejected'] += 1
-        self.get_logger().warning(f'{what} rejected ({self.counts["rejected"]} so far): {why}')
+        self.counts['rejected'] += 1    # counted every time; the warning at most 1/s per input
+        self.rejections.reject(what, f'{what} rejected ({self.counts["rejected"]} so far): '
+                               f'{why}')
 
     def _on_link(self, msg: PoseStamped, key: str) -> None:
         self.counts['received'] += 1
@@ -446,7 +453,7 @@ class JointEstimatorNode(Node):
 def main(args=None) -> None:
     """Run the node."""
     rclpy.init(args=args)
-    node = JointEstimatorNode()
+    node = create_node_or_exit(JointEstimatorNode, 'joint_estimator_node')
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

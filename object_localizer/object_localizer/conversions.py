@@ -3,44 +3,34 @@ ROS message types)."""
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
-from sensor_msgs.msg import PointCloud2, PointField
+from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
 from object_localizer.tracking import PoseQuality, TrackState
 from stereo_manip_msgs.msg import TrackStatus
-from stereo_manip_tools.conversions import pointcloud2_to_array
+from stereo_manip_tools.conversions import read_pointcloud2
 
 __all__ = ['cloud_xyz', 'track_status']
 
 
-def cloud_xyz(msg: PointCloud2) -> np.ndarray:
+def cloud_xyz(msg: PointCloud2, max_points: Optional[int] = None, voxel_size: float = 0.0
+              ) -> np.ndarray:
     """x, y, z of a ``PointCloud2`` as an (N, 3) float32 array [m]; rows may be NaN (organised
     clouds keep them; :class:`object_localizer.tracking.SceneCloud` ignores them).
 
-    Little-endian float32 x, y, z (the usual layout) are read as a strided view of the message
-    buffer and copied once (about 1 ms for 640x480); any other layout goes through
-    ``stereo_manip_tools.conversions.pointcloud2_to_array``.
+    Read by the shared hardened reader
+    :func:`stereo_manip_tools.conversions.read_pointcloud2` (checked layout; NaN/inf and
+    out-of-bounds coordinates become NaN rows; the usual float32 layout is one strided copy).
+    With ``max_points`` a cloud with more valid points is voxel-downsampled to at most that
+    many (bounded work per cloud).
 
-    :raises ValueError: a field is missing or the data is shorter than declared.
+    :raises stereo_manip_tools.conversions.PointCloudError: (a ValueError) unreadable layout.
     """
-    by_name = {f.name: f for f in msg.fields}
-    n = msg.width * msg.height
-    fast = (not msg.is_bigendian and all(
-        k in by_name and by_name[k].datatype == PointField.FLOAT32 and by_name[k].count == 1
-        for k in 'xyz') and msg.point_step % 4 == 0
-        and all(by_name[k].offset % 4 == 0 for k in 'xyz'))
-    if not fast:
-        return pointcloud2_to_array(msg, skip_nans=False).astype(np.float32)
-    if len(msg.data) < n * msg.point_step:
-        raise ValueError(f'PointCloud2 data has {len(msg.data)} bytes, expected '
-                         f'{n * msg.point_step}')
-    words = np.frombuffer(msg.data, dtype='<f4', count=n * msg.point_step // 4)
-    rows = words.reshape(n, msg.point_step // 4)
-    cols = [by_name[k].offset // 4 for k in 'xyz']
-    if cols == [cols[0], cols[0] + 1, cols[0] + 2]:
-        return np.ascontiguousarray(rows[:, cols[0]:cols[0] + 3])
-    return np.ascontiguousarray(rows[:, cols])
+    return read_pointcloud2(msg, keep_rows=True, max_points=max_points, voxel_size=voxel_size,
+                            dtype=np.float32).points
 
 
 def track_status(header: Header, name: str, state: TrackState, quality: PoseQuality | None,

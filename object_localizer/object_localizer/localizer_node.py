@@ -42,7 +42,9 @@ from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, sta
 from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
-    input_qos_descriptor, input_qos_profile, int_descriptor, string_descriptor
+    input_qos_descriptor, input_qos_profile, int_descriptor, reject_nonfinite_parameters, \
+    string_descriptor
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 from stereo_manip_tools.tf import PoseTfPublisher
 from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 
@@ -71,6 +73,8 @@ class ObjectLocalizerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('object_localizer', **kwargs)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        reject_nonfinite_parameters(self)
+        self.rejections = InputRejections(self.get_logger())
         self.declare_parameter('models', ['peg'], ParameterDescriptor(
             type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True,
             description='model names (OBJ files found by stereo_manip_tools.mesh_io.find_model)'))
@@ -129,6 +133,9 @@ class ObjectLocalizerNode(Node):
             description='optional hints of the start poses in the cloud frame, 7 numbers per '
                         'model in `models` order: x y z [m] qx qy qz qw; verified like any pose '
                         '(global search when they do not fit); unset = global search'))
+        self.declare_parameter('max_points', 100_000, int_descriptor(
+            'clouds with more valid points are voxel-downsampled to at most this many '
+            '(bounded work per cloud)', 1000, 5_000_000))
         self.declare_parameter('track_length', 300, int_descriptor(
             'verified poses kept per object for objects/<name>/track', 2, 100000))
         voxel = self.get_parameter('voxel_size').value
@@ -241,11 +248,12 @@ class ObjectLocalizerNode(Node):
 
     def _process(self, msg: PointCloud2) -> None:
         try:
-            scene = SceneCloud(cloud_xyz(msg))
+            scene = SceneCloud(cloud_xyz(msg, self.get_parameter('max_points').value,
+                                         self.get_parameter('voxel_size').value))
         except ValueError as exc:
             self.counts['rejected'] += 1
-            self.get_logger().warning(f'points2 rejected ({self.counts["rejected"]} so far): '
-                                      f'{exc}')
+            self.rejections.reject(getattr(exc, 'reason', 'unusable_cloud'),
+                                   f'points2 rejected: {exc}')
             return
         self.counts['processed'] += 1
         stamp = stamp_to_ns(msg.header.stamp)
@@ -308,7 +316,7 @@ def main(args=None) -> None:
     rclpy.init(args=args)
     node = None
     try:
-        node = ObjectLocalizerNode()
+        node = create_node_or_exit(ObjectLocalizerNode, 'object_localizer_node')
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -60,8 +60,9 @@ from stereo_manip_tools.conversions import (CameraInfoError, image_to_numpy, num
                                             xyz_to_pointcloud2)
 from stereo_manip_tools.parameters import bool_descriptor, float_descriptor, \
     INPUT_QOS_CHOICES, input_qos_descriptor, input_qos_profile, int_descriptor, \
-    string_descriptor
+    reject_nonfinite_parameters, string_descriptor
 from stereo_manip_tools.diagnostics import NodeDiagnostics
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 from stereo_manip_tools.sync import StampSynchronizer
 from stereo_manip_tools.tf import publish_camera_mount
 
@@ -294,6 +295,7 @@ class StereoDepthNode(Node):
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        reject_nonfinite_parameters(self)
         for name, (default, desc) in _PARAMS.items():
             self._params[name] = self.declare_parameter(name, default, desc).value
         for alias, (target, _, text) in ALIASES.items():
@@ -325,14 +327,12 @@ class StereoDepthNode(Node):
         self.pub_points = self.create_publisher(PointCloud2, 'points2', 1)
         qos = copy.copy(input_qos_profile(self._params['input_qos'], depth=1))
         qos.depth = 1       # drop, do not queue: the newest pair is the one worth matching
-        self.create_subscription(Image, 'left/image_rect',
-                                 lambda m: self._on_image('left', m), qos)
-        self.create_subscription(Image, 'right/image_rect',
-                                 lambda m: self._on_image('right', m), qos)
-        self.create_subscription(CameraInfo, 'left/camera_info',
-                                 lambda m: self._on_info('left', m), qos)
-        self.create_subscription(CameraInfo, 'right/camera_info',
-                                 lambda m: self._on_info('right', m), qos)
+        guard = InputRejections(self.get_logger()).guard   # last line of defence
+        for side in ('left', 'right'):
+            self.create_subscription(Image, f'{side}/image_rect', guard(
+                lambda m, s=side: self._on_image(s, m), f'{side}/image_rect'), qos)
+            self.create_subscription(CameraInfo, f'{side}/camera_info', guard(
+                lambda m, s=side: self._on_info(s, m), f'{side}/camera_info'), qos)
         self._stats_t0 = time.monotonic()
         self._stats_processed = 0
         self.create_timer(float(self._params['stats_period']), self._log_stats)
@@ -578,7 +578,7 @@ class StereoDepthNode(Node):
 
 def main(args=None):
     rclpy.init(args=args)
-    node = StereoDepthNode()
+    node = create_node_or_exit(StereoDepthNode, 'stereo_depth_node')
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

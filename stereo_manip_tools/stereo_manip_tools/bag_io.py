@@ -22,6 +22,7 @@ __all__ = [
     'BagMessage',
     'BagWriter',
     'read_bag',
+    'salvage_mcap',
     'bag_summary',
 ]
 
@@ -117,6 +118,20 @@ class BagWriter:
         self._writer.write(self._connections[topic], int(timestamp_ns), bytes(data))
         self.counts[topic] += 1
 
+    def flush(self) -> None:
+        """Make everything written so far durable against the process being killed: mcap
+        closes the pending chunk (a complete, indexed record) and flushes the file; sqlite3
+        commits. A bag cut off after a flush is readable up to it (see :func:`read_bag`)."""
+        storage = getattr(self._writer, 'storage', None)
+        if storage is None:
+            return
+        if hasattr(storage, 'close_chunk'):                 # mcap
+            if storage.chunk.bio.tell():
+                storage.close_chunk()
+            storage.bio.flush()
+        elif hasattr(storage, 'conn'):                      # sqlite3
+            storage.conn.commit()
+
     def close(self) -> None:
         """Finish the bag (writes metadata.yaml)."""
         self._writer.close()
@@ -126,6 +141,81 @@ class BagWriter:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def _read_string(buf: bytes, pos: int) -> Tuple[str, int]:
+    n = int.from_bytes(buf[pos:pos + 4], 'little')
+    return buf[pos + 4:pos + 4 + n].decode('utf-8', 'replace'), pos + 4 + n
+
+
+def _mcap_records(buf: bytes, pos: int, end: int) -> Iterator[Tuple[int, bytes]]:
+    """(opcode, content) of the complete records in ``buf[pos:end]``; stops at a cut one."""
+    while pos + 9 <= end:
+        op = buf[pos]
+        length = int.from_bytes(buf[pos + 1:pos + 9], 'little')
+        if pos + 9 + length > end:
+            return
+        yield op, buf[pos + 9:pos + 9 + length]
+        pos += 9 + length
+
+
+def salvage_mcap(path: os.PathLike | str) -> Iterator[BagMessage]:
+    """Messages of an mcap file that was never closed (writer killed): every complete,
+    uncompressed chunk and top-level message record up to where the file was cut, in file
+    order (the recorder writes in receive order)."""
+    buf = Path(path).read_bytes()
+    if not buf.startswith(b'\x89MCAP'):
+        raise BagError(f'{path} is not an mcap file')
+    schemas: Dict[int, str] = {}
+    channels: Dict[int, Tuple[str, str]] = {}
+
+    def walk(records: Iterator[Tuple[int, bytes]]) -> Iterator[BagMessage]:
+        for op, rec in records:
+            if op == 0x03:                                          # schema
+                sid = int.from_bytes(rec[:2], 'little')
+                schemas[sid], _ = _read_string(rec, 2)
+            elif op == 0x04:                                        # channel
+                cid = int.from_bytes(rec[:2], 'little')
+                sid = int.from_bytes(rec[2:4], 'little')
+                topic, _ = _read_string(rec, 4)
+                channels[cid] = (topic, schemas.get(sid, ''))
+            elif op == 0x05 and len(rec) >= 22:                     # message
+                cid = int.from_bytes(rec[:2], 'little')
+                if cid in channels:
+                    topic, msgtype = channels[cid]
+                    yield BagMessage(topic, msgtype, int.from_bytes(rec[6:14], 'little'),
+                                     bytes(rec[22:]))
+            elif op == 0x06:                                        # chunk
+                compression, pos = _read_string(rec, 28)
+                size = int.from_bytes(rec[pos:pos + 8], 'little')
+                if compression:          # our writer does not compress; skip such chunks
+                    continue
+                inner = rec[pos + 8:pos + 8 + size]
+                yield from walk(_mcap_records(inner, 0, len(inner)))
+
+    yield from walk(_mcap_records(buf, 8, len(buf)))
+
+
+def _salvage_sqlite(path: Path) -> Iterator[BagMessage]:
+    import sqlite3
+
+    conn = sqlite3.connect(f'file:{path}?mode=ro', uri=True)
+    try:
+        rows = conn.execute('SELECT topics.name, topics.type, messages.timestamp, '
+                            'messages.data FROM messages JOIN topics ON '
+                            'messages.topic_id = topics.id ORDER BY messages.timestamp')
+        for topic, msgtype, timestamp, data in rows:
+            yield BagMessage(topic, msgtype, int(timestamp), bytes(data))
+    finally:
+        conn.close()
+
+
+def _unfinished_storage(path: Path) -> Optional[Path]:
+    """The single storage file of a bag directory without metadata.yaml, if any."""
+    if not path.is_dir() or (path / 'metadata.yaml').exists():
+        return None
+    files = sorted(path.glob('*.mcap')) + sorted(path.glob('*.db3'))
+    return files[0] if len(files) == 1 else None
 
 
 def _open_reader(path: os.PathLike | str) -> Any:
@@ -148,8 +238,22 @@ def read_bag(path: os.PathLike | str, topics: Optional[Sequence[str]] = None
              ) -> Iterator[BagMessage]:
     """Messages of a bag in time order, optionally only ``topics``.
 
+    A bag whose recorder was killed (no metadata.yaml) is salvaged: every message up to the
+    last complete mcap chunk (sqlite3: the last commit) is read.
+
     :raises BagError: missing path, not a bag, or a requested topic is absent.
     """
+    unfinished = _unfinished_storage(Path(path))
+    if unfinished is not None:
+        messages = list(salvage_mcap(unfinished) if unfinished.suffix == '.mcap'
+                        else _salvage_sqlite(unfinished))
+        available = {m.topic for m in messages}
+        missing = sorted(set(topics or ()) - available)
+        if missing:
+            raise BagError(f'topic(s) {", ".join(missing)} not in bag; it has: '
+                           + ', '.join(sorted(available)))
+        yield from (m for m in messages if not topics or m.topic in topics)
+        return
     reader = _open_reader(path)
     try:
         available = {c.topic for c in reader.connections}
@@ -166,7 +270,16 @@ def read_bag(path: os.PathLike | str, topics: Optional[Sequence[str]] = None
 
 
 def bag_summary(path: os.PathLike | str) -> Tuple[Dict[str, Tuple[str, int]], int, int]:
-    """``({topic: (type, count)}, first_ns, last_ns)``: per-topic counts, first/last stamps."""
+    """``({topic: (type, count)}, first_ns, last_ns)``: per-topic counts, first/last stamps
+    (of the salvaged messages for a bag that was never closed)."""
+    if _unfinished_storage(Path(path)) is not None:
+        out: Dict[str, Tuple[str, int]] = {}
+        stamps = []
+        for m in read_bag(path):
+            t, n = out.get(m.topic, (m.msgtype, 0))
+            out[m.topic] = (t, n + 1)
+            stamps.append(m.timestamp)
+        return out, (min(stamps) if stamps else 0), (max(stamps) if stamps else 0)
     reader = _open_reader(path)
     try:
         out: Dict[str, Tuple[str, int]] = {}

@@ -5,20 +5,26 @@ Usage::
     ros2 run stereo_manip_tools record -o my_bag /left/image_rect /objects/peg/pose_truth
     scripts/ros2run stereo_manip_tools record -o my_bag --duration 5 /topic_a /topic_b
 
-Messages are stored as received (CDR bytes) with their receive time. Ctrl-C, ``--duration`` or
-``--max-messages`` ends the recording; the bag is always closed cleanly. Counts are printed
+Messages are stored as received (CDR bytes) with their receive time. Ctrl-C (SIGINT), SIGTERM,
+``--duration`` or ``--max-messages`` ends the recording: the recorder first drains what is
+already queued for it (until ``--drain`` seconds pass without a message), then closes the bag
+cleanly, so nothing that reached it is lost. Every ``--flush-period`` seconds the pending mcap
+chunk is closed and flushed (sqlite3: committed), so after ``kill -9`` the bag is readable up to
+that point (``read_bag``/``replay`` salvage a bag without metadata.yaml). Counts are printed
 every second.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 from typing import Dict, List, Optional, Sequence
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
+from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
@@ -75,6 +81,11 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument('--max-messages', type=int, default=0, help='stop after N messages in all')
     p.add_argument('--wait', type=float, default=10.0,
                    help='fail if a topic has not appeared within S seconds')
+    p.add_argument('--flush-period', type=float, default=1.0,
+                   help='close and flush the pending chunk every S seconds (what kill -9 can '
+                        'lose at most); 0: only at the end')
+    p.add_argument('--drain', type=float, default=0.5,
+                   help='on stop, keep taking queued messages until none came for S seconds')
     return p.parse_args(argv)
 
 
@@ -87,14 +98,22 @@ def main(args: Optional[Sequence[str]] = None) -> int:
     except BagError as exc:
         print(f'record: {exc}', file=sys.stderr)
         return 1
-    rclpy.init(args=args)
+    # Our own SIGINT/SIGTERM handlers: rclpy's would shut the context down at once, and the
+    # messages already queued for the subscriptions would be lost with it.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = {'signal': None}
+
+    def on_signal(signum: int, _frame: object) -> None:
+        stop['signal'] = signal.Signals(signum).name
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     node = rclpy.create_node('bag_recorder')
     recorder = BagRecorder(node, writer, opts.topics)
     code = 0
     start = time.monotonic()
-    last_report = start
+    last_report = last_flush = start
     try:
-        while rclpy.ok():
+        while rclpy.ok() and stop['signal'] is None:
             recorder.try_subscribe()
             pending = recorder.pending_topics()
             now = time.monotonic()
@@ -108,10 +127,16 @@ def main(args: Optional[Sequence[str]] = None) -> int:
                 counts = ', '.join(f'{t}: {n}' for t, n in writer.counts.items())
                 print(f'[record] {recorder.total} messages ({counts})', flush=True)
                 last_report = now
+            if opts.flush_period > 0 and now - last_flush >= opts.flush_period:
+                writer.flush()
+                last_flush = now
             if opts.duration and now - start >= opts.duration:
                 break
             if opts.max_messages and recorder.total >= opts.max_messages:
                 break
+        if stop['signal'] is not None:
+            drained = _drain(node, recorder, opts.drain)
+            print(f'[record] {stop["signal"]}: drained {drained} queued messages', flush=True)
     except BagError as exc:
         print(f'record: {exc}', file=sys.stderr)
         code = 1
@@ -123,7 +148,23 @@ def main(args: Optional[Sequence[str]] = None) -> int:
         print(f'[record] wrote {recorder.total} messages to {opts.output} ({counts})', flush=True)
         node.destroy_node()
         rclpy.try_shutdown()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
     return code
+
+
+def _drain(node: Node, recorder: BagRecorder, quiet: float, limit: float = 10.0) -> int:
+    """Take what is queued (and still arriving) until ``quiet`` [s] pass without a message or
+    ``limit`` [s] in all; returns the number of messages taken."""
+    before = recorder.total
+    t0 = last = time.monotonic()
+    seen = recorder.total
+    while time.monotonic() - last < quiet and time.monotonic() - t0 < limit:
+        rclpy.spin_once(node, timeout_sec=0.02)
+        if recorder.total != seen:
+            seen = recorder.total
+            last = time.monotonic()
+    return recorder.total - before
 
 
 if __name__ == '__main__':

@@ -15,6 +15,8 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 
+from stereo_manip_tools.files import open_regular_file
+
 __all__ = ['PolygonMesh', 'load_obj', 'save_obj', 'find_model', 'MODEL_PACKAGE']
 
 MODEL_PACKAGE = 'stereo_depth'
@@ -75,12 +77,14 @@ def load_obj(path: os.PathLike | str) -> PolygonMesh:
     Negative (relative) indices are resolved; texture and normal records are ignored.
 
     :raises FileNotFoundError: if ``path`` does not exist.
-    :raises ValueError: on a malformed record, naming the file and line.
+    :raises ValueError: on a malformed record, naming the file and line, or a path that is not
+        a regular file (:class:`stereo_manip_tools.files.NotARegularFileError`: a FIFO would
+        block).
     """
     path = Path(path)
     vertices: List[List[float]] = []
     faces: List[List[int]] = []
-    with open(path, 'r', encoding='utf-8') as fh:
+    with open_regular_file(path, 'OBJ model') as fh:
         for lineno, line in enumerate(fh, 1):
             parts = line.split()
             if not parts or parts[0].startswith('#'):

@@ -6,12 +6,17 @@ these helpers keep those declarations short and identical across packages.
 
 from __future__ import annotations
 
+import math
+from typing import Any, Iterable, Optional
+
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
-    ParameterType
+    ParameterType, SetParametersResult
+from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 
 __all__ = ['float_descriptor', 'int_descriptor', 'string_descriptor', 'bool_descriptor',
-           'INPUT_QOS_CHOICES', 'input_qos_descriptor', 'input_qos_profile']
+           'INPUT_QOS_CHOICES', 'input_qos_descriptor', 'input_qos_profile',
+           'nonfinite_parameter_reason', 'reject_nonfinite_parameters']
 
 
 def float_descriptor(description: str, low: float, high: float,
@@ -74,3 +79,36 @@ def input_qos_profile(choice: str, depth: int = 2) -> QoSProfile:
     if choice == 'sensor_data':
         return qos_profile_sensor_data
     return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def nonfinite_parameter_reason(params: Iterable[Parameter]) -> Optional[str]:
+    """Why a parameter update must be refused because a double (or an element of a double
+    array) is NaN or infinite; None when every value is finite.
+
+    A ranged double already refuses NaN (rclpy's range test), but an unranged double, every
+    double array and a value given where no descriptor applies do not.
+    """
+    for p in params:
+        if p.type_ == Parameter.Type.DOUBLE:
+            values = [p.value]
+        elif p.type_ == Parameter.Type.DOUBLE_ARRAY:
+            values = list(p.value)
+        else:
+            continue
+        bad = [v for v in values if not math.isfinite(v)]
+        if bad:
+            return f'parameter {p.name} must be finite, got {p.value}'
+    return None
+
+
+def reject_nonfinite_parameters(node: Any) -> None:
+    """Add an on-set-parameters callback to ``node`` that refuses NaN/inf doubles.
+
+    Call it in the node's ``__init__`` before declaring parameters, so start-up overrides
+    (``-p name:=.nan``) are checked too (the declaration then raises, which
+    :func:`stereo_manip_tools.robustness.create_node_or_exit` turns into one line + exit 1).
+    """
+    def check(params: Iterable[Parameter]) -> SetParametersResult:
+        reason = nonfinite_parameter_reason(params)
+        return SetParametersResult(successful=reason is None, reason=reason or '')
+    node.add_on_set_parameters_callback(check)

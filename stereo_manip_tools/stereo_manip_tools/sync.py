@@ -20,10 +20,15 @@ class StampSynchronizer:
     :param keys: stream names, e.g. ``('left', 'right', 'left_info', 'right_info')``.
     :param tolerance_ns: largest allowed stamp spread within a set [ns]; 0 = exact.
     :param queue_size: items kept per stream while waiting for partners (older ones dropped).
+    :param restart_after_ns: an item this much older than the last emitted set is a source
+        restart (a camera or bag that started again, or a clock reset, or the last set came
+        from a bogus future stamp): everything is forgotten and matching starts again
+        (counted in ``restarts``); None: such items are dropped like any older item.
     """
 
     def __init__(self, keys: Sequence[Hashable], tolerance_ns: int = 0,
-                 queue_size: int = 10) -> None:
+                 queue_size: int = 10, restart_after_ns: Optional[int] = 1_000_000_000
+                 ) -> None:
         if not keys:
             raise ValueError('StampSynchronizer needs at least one stream key')
         if tolerance_ns < 0:
@@ -38,13 +43,16 @@ class StampSynchronizer:
         self.dropped: Dict[str, int] = {'queue_overflow': 0, 'superseded': 0,
                                         'older_than_last_match': 0}
         self.matched = 0
+        self.restarts = 0
+        self.restart_after_ns = restart_after_ns
         self._last_match_ns: Optional[int] = None
 
     def add(self, key: Hashable, stamp_ns: int, item: Any) -> Optional[Dict[Hashable, Any]]:
         """Offer one item; returns ``{key: item}`` for every stream when a set is complete.
 
         Items older than the last emitted set are dropped (counted), so output stamps are
-        strictly increasing.
+        strictly increasing - unless older by more than ``restart_after_ns``: then the source
+        restarted and matching starts again from this item.
 
         :raises KeyError: ``key`` is not one of the streams.
         """
@@ -52,8 +60,13 @@ class StampSynchronizer:
             raise KeyError(f'unknown stream {key!r}; streams: {self.keys}')
         stamp_ns = int(stamp_ns)
         if self._last_match_ns is not None and stamp_ns <= self._last_match_ns:
-            self.dropped['older_than_last_match'] += 1
-            return None
+            if (self.restart_after_ns is None
+                    or self._last_match_ns - stamp_ns <= self.restart_after_ns):
+                self.dropped['older_than_last_match'] += 1
+                return None
+            self.dropped['superseded'] += sum(len(q) for q in self._queues.values())
+            self.reset()
+            self.restarts += 1
         q = self._queues[key]
         q[stamp_ns] = item
         while len(q) > self.queue_size:

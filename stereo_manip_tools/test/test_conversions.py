@@ -4,14 +4,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
 from stereo_manip_tools.conversions import (
-    camera_info_from_parameters, CameraInfoError, image_to_numpy, IMAGE_ENCODINGS,
-    matrices_to_path, matrix_to_pose, ns_to_stamp, numpy_to_image, path_to_matrices,
-    pointcloud2_to_array, pose_to_matrix, stamp_to_ns, StereoCameraParameters,
-    stereo_parameters_from_camera_info, xyz_to_pointcloud2)
+    camera_info_from_parameters, CameraInfoError, DEFAULT_MAX_ABS_COORDINATE, image_to_numpy,
+    IMAGE_ENCODINGS, MAX_POINTS_RECEIVED, matrices_to_path, matrix_to_pose, ns_to_stamp,
+    numpy_to_image, path_to_matrices, pointcloud2_to_array, PointCloudError, pose_to_matrix,
+    read_pointcloud2, stamp_to_ns, StereoCameraParameters, stereo_parameters_from_camera_info,
+    xyz_to_pointcloud2)
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 
@@ -141,3 +142,101 @@ def test_input_qos_choices():
     with pytest.raises(ValueError, match='input_qos must be one of'):
         input_qos_profile('fast')
     assert input_qos_descriptor('points2').read_only
+
+
+# --- the hardened PointCloud2 reader ------------------------------------------------------
+
+def _cloud(points, **overrides):
+    msg = xyz_to_pointcloud2(np.asarray(points, dtype=np.float32), Header(frame_id='cam'))
+    for k, v in overrides.items():
+        setattr(msg, k, v)
+    return msg
+
+
+@pytest.mark.parametrize('change, reason', [
+    (dict(point_step=0), 'bad_layout'),
+    (dict(height=2, width=2, row_step=4), 'bad_layout'),
+    (dict(width=10), 'truncated'),
+    (dict(fields=[PointField(name='x', offset=0, datatype=7, count=1),
+                  PointField(name='y', offset=4, datatype=7, count=1),
+                  PointField(name='z', offset=40, datatype=7, count=1)]), 'bad_field'),
+    (dict(fields=[PointField(name='x', offset=0, datatype=0, count=1),
+                  PointField(name='y', offset=4, datatype=7, count=1),
+                  PointField(name='z', offset=8, datatype=7, count=1)]), 'bad_datatype'),
+    (dict(fields=[PointField(name='x', offset=0, datatype=99, count=1),
+                  PointField(name='y', offset=4, datatype=7, count=1),
+                  PointField(name='z', offset=8, datatype=7, count=1)]), 'bad_datatype'),
+    (dict(fields=[PointField(name='x', offset=0, datatype=7, count=1),
+                  PointField(name='x', offset=4, datatype=7, count=1),
+                  PointField(name='z', offset=8, datatype=7, count=1)]), 'bad_field'),
+    (dict(fields=[PointField(name='x', offset=0, datatype=7, count=1)]), 'missing_field'),
+    (dict(width=MAX_POINTS_RECEIVED + 1), 'too_large'),
+])
+def test_pointcloud_layout_errors_name_their_reason(change, reason):
+    msg = _cloud([[0.1, 0.2, 0.5], [0.3, 0.4, 0.6]], **change)
+    with pytest.raises(PointCloudError) as info:
+        read_pointcloud2(msg)
+    assert info.value.reason == reason
+    assert isinstance(info.value, ValueError)      # existing `except ValueError` still catch it
+
+
+def test_pointcloud_big_endian_and_row_padding_are_honoured():
+    P = np.array([[0.1, -0.2, 0.5], [0.3, 0.4, 0.6], [1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    rows = np.zeros((2, 40), dtype=np.uint8)          # 2 rows of 2 points, 16 bytes padding
+    rows[:, :24] = P.astype('>f4').view(np.uint8).reshape(2, 24)
+    msg = PointCloud2(height=2, width=2, point_step=12, row_step=40, is_bigendian=True,
+                      fields=[PointField(name=n, offset=4 * i, datatype=7, count=1)
+                              for i, n in enumerate('xyz')], data=rows.tobytes())
+    assert np.allclose(read_pointcloud2(msg).points, P, atol=1e-6)
+
+
+def test_pointcloud_drops_nonfinite_and_huge_coordinates_with_counts():
+    msg = _cloud([[0.1, 0.2, 0.5], [np.nan, 0, 1], [1e30, 0, 1], [0, np.inf, 1], [0, 0, -2e4]])
+    reading = read_pointcloud2(msg)
+    assert reading.points.shape == (1, 3) and reading.declared == 5
+    assert (reading.nonfinite, reading.out_of_bounds) == (2, 2)
+
+
+def test_pointcloud_cap_voxel_downsamples_a_surface():
+    rng = np.random.default_rng(5)
+    uv = rng.random((200_000, 2))
+    P = np.c_[uv * 0.2, np.full(len(uv), 0.5)]        # a 20 cm square at z = 0.5 m
+    reading = read_pointcloud2(_cloud(P), max_points=5000)
+    assert 2500 <= len(reading.points) <= 5000 and reading.downsampled_from == 200_000
+    assert reading.voxel_size > 0
+    # centroids stay on the surface and cover it
+    assert np.allclose(reading.points[:, 2], 0.5, atol=1e-6)
+    assert reading.points[:, 0].min() < 0.01 and reading.points[:, 0].max() > 0.19
+
+
+def test_pointcloud_cap_bounds_a_random_volume():
+    P = np.random.default_rng(6).random((300_000, 3)) * 100.0
+    reading = read_pointcloud2(_cloud(P), max_points=1000)
+    assert len(reading.points) <= 1000 and np.all(np.isfinite(reading.points))
+
+
+_FIELD = st.builds(lambda name, offset, datatype, count: PointField(
+    name=name, offset=offset, datatype=datatype, count=count),
+    st.sampled_from(['x', 'y', 'z', 'rgb', 'intensity']), st.integers(0, 40),
+    st.integers(0, 10), st.integers(0, 3))
+
+
+@settings(max_examples=300, deadline=None)
+@given(width=st.integers(0, 40), height=st.integers(0, 4), point_step=st.integers(0, 48),
+       row_step=st.integers(0, 400), fields=st.lists(_FIELD, max_size=6),
+       big=st.booleans(), data=st.binary(max_size=2000),
+       wanted=st.sampled_from([('x', 'y', 'z'), ('x', 'y', 'z', 'rgb'), ('intensity',)]))
+def test_pointcloud_reader_never_fails_untyped(width, height, point_step, row_step, fields, big,
+                                               data, wanted):
+    """Any layout either reads (finite, bounded xyz) or raises PointCloudError."""
+    msg = PointCloud2(width=width, height=height, point_step=point_step, row_step=row_step,
+                      fields=fields, is_bigendian=big, data=data)
+    try:
+        reading = read_pointcloud2(msg, wanted, max_points=50)
+    except PointCloudError as exc:
+        assert exc.reason in ('bad_layout', 'truncated', 'bad_field', 'bad_datatype',
+                              'missing_field', 'too_large')
+        return
+    assert len(reading.points) <= 50
+    if wanted[:3] == ('x', 'y', 'z') and len(reading.points):
+        assert np.all(np.abs(reading.points[:, :3]) <= DEFAULT_MAX_ABS_COORDINATE)

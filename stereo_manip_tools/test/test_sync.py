@@ -72,3 +72,18 @@ def test_every_common_stamp_matched_once_in_order(stamps, rnd):
     assert got == sorted(got) and all(m['a'][1] == m['b'][1] for m in out)
     total_dropped = sum(sync.dropped.values())
     assert len(out) * 2 + total_dropped == len(events)
+
+
+def test_a_large_backward_jump_is_a_source_restart():
+    sync = StampSynchronizer(('l', 'r'), restart_after_ns=10**9)
+    assert sync.add('l', 5 * 10**18, 'bogus') is None
+    assert sync.add('r', 5 * 10**18, 'bogus') is not None       # a set from a future stamp
+    assert sync.add('l', 2 * 10**9, 'a') is None                 # far behind: restart
+    assert sync.restarts == 1
+    assert sync.add('r', 2 * 10**9, 'b') == {'l': 'a', 'r': 'b'}
+    assert sync.add('l', 2 * 10**9 - 10, 'late') is None         # slightly older: dropped
+    assert sync.dropped['older_than_last_match'] == 1 and sync.restarts == 1
+    strict = StampSynchronizer(('l', 'r'), restart_after_ns=None)
+    strict.add('l', 10**12, 1)
+    strict.add('r', 10**12, 2)
+    assert strict.add('l', 5, 3) is None and strict.dropped['older_than_last_match'] == 1
