@@ -53,7 +53,8 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 import numpy as np
 import open3d as o3d
 
-from object_localizer.localization import (ModelTemplate, prepare_model, prepare_scene,
+from object_localizer.localization import (fpfh_features, match_features_ransac,
+                                           ModelTemplate, prepare_model, prepare_scene,
                                            remove_dominant_plane)
 from object_localizer.ppf import build_ppf_model, cluster_poses, PPFModel, ppf_vote
 from object_localizer.verification import (as_camera, CameraLike, observe_depth, ObservedDepth,
@@ -260,25 +261,12 @@ def _rough_ppf(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
 
 def _rough_fpfh(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
                 attempts: int) -> List[tuple]:
-    reg = o3d.pipelines.registration
     t = model.template
-    voxel = t.voxel_size
-    search = scene.cloud(voxel, drop_plane=True, min_plane_extent=2.0 * model.diameter,
+    search = scene.cloud(t.voxel_size, drop_plane=True, min_plane_extent=2.0 * model.diameter,
                          seed=seed)
-    feats = reg.compute_fpfh_feature(
-        search, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
-    out = []
-    for k in range(attempts):
-        o3d.utility.random.seed(seed + k)
-        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            res = reg.registration_ransac_based_on_feature_matching(
-                t.cloud, search, t.features, feats, True, 2.0 * voxel,
-                reg.TransformationEstimationPointToPoint(False), 3,
-                [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-                 reg.CorrespondenceCheckerBasedOnDistance(2.0 * voxel)],
-                reg.RANSACConvergenceCriteria(100000, 0.999))
-        out.append((np.asarray(res.transformation).copy(), float(res.fitness)))
-    return out
+    feats = fpfh_features(search, t.voxel_size)
+    return [match_features_ransac(t, search, feats, seed=seed + k, max_iterations=100000)
+            for k in range(attempts)]
 
 
 def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,

@@ -13,7 +13,7 @@ poses are 4x4 transforms model frame -> sensor frame. Open3D does the nearest-ne
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, TYPE_CHECKING
+from typing import Optional, Tuple, TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
@@ -24,6 +24,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from object_localizer.acquisition import AcquisitionModel
 
 __all__ = [
+    'fpfh_features',
+    'match_features_ransac',
     'ModelTemplate',
     'LocalizationResult',
     'sample_surface',
@@ -74,7 +76,9 @@ class LocalizationResult:
     method: str
 
 
-def _features(cloud: o3d.geometry.PointCloud, voxel: float) -> o3d.pipelines.registration.Feature:
+def fpfh_features(cloud: o3d.geometry.PointCloud,
+                  voxel: float) -> o3d.pipelines.registration.Feature:
+    """FPFH descriptors of ``cloud`` (normals set) at radius ``5 * voxel`` (m)."""
     return o3d.pipelines.registration.compute_fpfh_feature(
         cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
 
@@ -102,7 +106,7 @@ def prepare_model(mesh: PolygonMesh, voxel_size: float = 0.003, samples: int = 2
         raise ValueError(f'voxel_size must be > 0, got {voxel_size}')
     pcd = sample_surface(mesh, samples, seed).voxel_down_sample(voxel_size)
     return ModelTemplate(mesh.name, np.asarray(pcd.points).copy(), np.asarray(pcd.normals).copy(),
-                         voxel_size, pcd, _features(pcd, voxel_size))
+                         voxel_size, pcd, fpfh_features(pcd, voxel_size))
 
 
 def prepare_scene(points: np.ndarray, voxel_size: float) -> o3d.geometry.PointCloud:
@@ -146,18 +150,32 @@ def rough_localize(model: ModelTemplate, scene: o3d.geometry.PointCloud, *,
 
     Seeded (``o3d.utility.random.seed``) so results repeat.
     """
+    features = fpfh_features(scene, model.voxel_size)
+    pose, _ = match_features_ransac(model, scene, features, seed=seed,
+                                    max_iterations=max_iterations, confidence=confidence)
+    return pose
+
+
+def match_features_ransac(model: ModelTemplate, scene: o3d.geometry.PointCloud,
+                          scene_features: o3d.pipelines.registration.Feature, *, seed: int,
+                          max_iterations: int, confidence: float = 0.999
+                          ) -> Tuple[np.ndarray, float]:
+    """One seeded FPFH-correspondence RANSAC run of ``model`` against ``scene``.
+
+    :returns: the pose (4x4, model -> scene frame) and Open3D's fitness (inlier fraction of
+        the model cloud, 0..1).
+    """
     reg = o3d.pipelines.registration
     voxel = model.voxel_size
     o3d.utility.random.seed(seed)
-    feats = _features(scene, voxel)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         result = reg.registration_ransac_based_on_feature_matching(
-            model.cloud, scene, model.features, feats, True, 2.0 * voxel,
+            model.cloud, scene, model.features, scene_features, True, 2.0 * voxel,
             reg.TransformationEstimationPointToPoint(False), 3,
             [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
              reg.CorrespondenceCheckerBasedOnDistance(2.0 * voxel)],
             reg.RANSACConvergenceCriteria(max_iterations, confidence))
-    return np.asarray(result.transformation).copy()
+    return np.asarray(result.transformation).copy(), float(result.fitness)
 
 
 def _visible_model(model: ModelTemplate, pose: np.ndarray) -> o3d.geometry.PointCloud:
