@@ -79,7 +79,9 @@ def test_corrected_peg_on_tf_and_diagnostics_from_every_node(ros_node):
         assert parent == msg.header.frame_id == 'stereo_left_optical'
         assert np.allclose(T_tf, pose_to_matrix(msg.pose), atol=1e-9)
         # raw poses as <name>; the mount is static; contact_state's frame is in the same tree
-        assert listener.can_transform('peg', 'peg_corrected')
+        # raw and corrected poses reach /tf from two nodes: the raw one may arrive later
+        assert spin_until(node, lambda: listener.can_transform('peg', 'peg_corrected'), 5.0), \
+            listener.frames()
         T_mount = make_transform(matrix_from_quaternion(MOUNT[3:]), MOUNT[:3])
         T_w_cam, _ = listener.lookup('world', 'stereo_left_optical')
         assert np.allclose(T_w_cam, T_mount, atol=1e-9)
@@ -105,10 +107,11 @@ def test_corrected_peg_on_tf_and_diagnostics_from_every_node(ros_node):
                                          'objects/peg/pose_corrected stamp age p95 [s]',
                                          'objects/peg/pose rate [Hz]'}
                           <= keys('contact_correction'), 5.0), keys('contact_correction')
-        assert {'points2 rate [Hz]', 'objects/peg/pose stamp age max [s]'} \
-            <= keys('object_localizer')
-        assert {'disparity rate [Hz]', 'left/image_rect mean rate [Hz]'} \
-            <= keys('stereo_depth_node')
+        # each node reports at 1 Hz: the report in hand may predate the first pose, wait for one
+        assert spin_until(node, lambda: {'points2 rate [Hz]', 'objects/peg/pose stamp age max [s]'}
+                          <= keys('object_localizer'), 5.0), keys('object_localizer')
+        assert spin_until(node, lambda: {'disparity rate [Hz]', 'left/image_rect mean rate [Hz]'}
+                          <= keys('stereo_depth_node'), 5.0), keys('stereo_depth_node')
         assert 'peg state' in keys('object_localizer')
     finally:
         for proc in procs:
