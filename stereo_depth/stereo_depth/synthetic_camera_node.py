@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import rclpy
@@ -45,7 +45,8 @@ from stereo_depth.synthetic import (
     load_motorcycle, load_stereo_files, RealStereoPair, RenderOptions, SCENES, StereoCamera,
     SyntheticStereo)
 
-__all__ = ['SyntheticCameraNode', 'main', 'SOURCES', 'ENCODINGS', 'PLAYBACKS', 'scene_frame']
+__all__ = ['SyntheticCameraNode', 'main', 'SOURCES', 'ENCODINGS', 'PLAYBACKS', 'scene_frame',
+           'FrameGrid']
 
 SOURCES = ('synthetic', 'motorcycle', 'files')
 ENCODINGS = ('mono8', 'rgb8')
@@ -63,6 +64,57 @@ def scene_frame(count: int, n_frames: int, playback: str) -> int:
     period = 2 * (n_frames - 1)
     k = int(count) % period
     return k if k < n_frames else period - k
+
+
+class FrameGrid:
+    """Exposure times of a free-running camera: frame ``k`` is due at ``t0 + k / rate`` [s].
+
+    The ROS timer only wakes the camera; which frames are due is decided here, on a steady
+    clock. A wake-up that comes more than a period late (a loaded machine: the rcl timer then
+    skips the missed periods) still yields every frame whose time has passed, up to
+    ``1 + catch_up`` frames per wake-up, like the frames a camera driver keeps in its buffer
+    ring; older ones are dropped and counted. So the camera keeps its rate on average
+    whenever rendering keeps up on average, and says how many frames it lost when it does not.
+    A wake-up ahead of the grid (the timer's phase drifted below the anchor) re-anchors the
+    grid on it.
+
+    Pure Python (no rclpy); ``now`` values come from one steady clock, e.g. ``time.monotonic``.
+    """
+
+    def __init__(self, rate: float, catch_up: int) -> None:
+        if not (math.isfinite(rate) and rate > 0):
+            raise ValueError(f'rate must be > 0 Hz, got {rate}')
+        if catch_up < 0:
+            raise ValueError(f'catch_up must be >= 0 frames, got {catch_up}')
+        self.rate = float(rate)
+        self.catch_up = int(catch_up)
+        self.t0: Optional[float] = None
+        self.next_index = 0          # grid index of the next frame to render
+
+    def reset(self) -> None:
+        """Start a new grid at the next wake-up (after a rate change or a rebuild)."""
+        self.t0 = None
+        self.next_index = 0
+
+    def due(self, now: float) -> Tuple[int, int]:
+        """Frames to render now and frames dropped (older than the catch-up allows).
+
+        :param now: the wake-up time [s] on the grid's steady clock.
+        :returns: ``(render, dropped)``; ``render >= 1``: a wake-up always yields a frame.
+        """
+        if self.t0 is None:
+            self.t0 = float(now)
+            self.next_index = 0
+        # 5 % of a period of slack: float noise never turns an on-time wake-up into a miss
+        k_due = math.floor((now - self.t0) * self.rate + 0.05)
+        n = k_due - self.next_index + 1
+        if n <= 0:                   # woken before the grid's next frame: re-anchor on it
+            self.t0 = float(now) - self.next_index / self.rate
+            n = 1
+        dropped = max(0, n - 1 - self.catch_up)
+        render = n - dropped
+        self.next_index += n
+        return render, dropped
 
 
 def _float_range(lo: float, hi: float) -> List[FloatingPointRange]:
@@ -84,6 +136,11 @@ _PARAMS = {
              {'floating_point_range': _float_range(0.01, 1000.0)}),
     'start_frame': (0, 'Scene frame index of the first published frame.',
                     {'integer_range': _int_range(0, 2 ** 31 - 1)}),
+    'catch_up_frames': (3, 'Free-running: frames still rendered (late) after the camera was '
+                           'woken more than a period late, like the frames a camera driver '
+                           'buffers; older missed frames are dropped and counted '
+                           '(dropped_frames). 0 = skip every missed period.',
+                        {'integer_range': _int_range(0, 100)}),
     'trigger': (False, 'Software trigger: publish one frame per std_msgs/Empty received on '
                        '`trigger` instead of at `rate` (read-only; set at start-up).',
                 {'read_only': True}),
@@ -170,6 +227,9 @@ class SyntheticCameraNode(Node):
         self._frame = int(self._values['start_frame'])
         self.frames_published = 0
         self.late_frames = 0
+        self.caught_up_frames = 0    # rendered late, for a period the timer had skipped
+        self.dropped_frames = 0      # periods the camera missed beyond catch_up_frames
+        self._steady_clock = time.monotonic    # the frame grid's clock [s]
         self._warm = False  # the first frame after a rebuild loads the JIT cache: not "late"
         self.render_errors = 0
         self._pose_pubs: Dict[str, object] = {}
@@ -186,10 +246,13 @@ class SyntheticCameraNode(Node):
         if self._values['trigger']:
             self.create_subscription(Empty, 'trigger', lambda _msg: self._tick(), 10)
         else:
-            self._timer = self.create_timer(1.0 / float(self._values['rate']), self._tick)
+            self._grid = FrameGrid(float(self._values['rate']),
+                                   int(self._values['catch_up_frames']))
+            self._timer = self.create_timer(1.0 / float(self._values['rate']), self._on_timer)
         self.get_logger().info(self._describe())
         self.diagnostics = NodeDiagnostics(self, lambda: {  # /diagnostics: topics, counters
             'frames_published': self.frames_published, 'late_frames': self.late_frames,
+            'caught_up_frames': self.caught_up_frames, 'dropped_frames': self.dropped_frames,
             'render_errors': self.render_errors})
 
     # --- parameters -----------------------------------------------------------------------
@@ -282,13 +345,36 @@ class SyntheticCameraNode(Node):
         right.header = header_r
         return left, right
 
-    def _tick(self) -> None:
-        t0 = time.perf_counter()
-        if self._rate_dirty and self._timer is not None:
+    def _on_timer(self) -> None:
+        """Free-running wake-up: render every frame the grid says is due (see FrameGrid)."""
+        if self._rate_dirty:
             self._rate_dirty = False
             self._timer.cancel()
             self.destroy_timer(self._timer)
-            self._timer = self.create_timer(1.0 / float(self._values['rate']), self._tick)
+            self._timer = self.create_timer(1.0 / float(self._values['rate']), self._on_timer)
+            self._grid = FrameGrid(float(self._values['rate']),
+                                   int(self._values['catch_up_frames']))
+        self._grid.catch_up = int(self._values['catch_up_frames'])
+        if self._dirty or not self._warm:
+            # the first frame after a (re)build loads the JIT cache: the grid starts after it
+            self._tick()
+            self._grid.reset()
+            return
+        render, dropped = self._grid.due(self._steady_clock())
+        if dropped:
+            self.dropped_frames += dropped
+            self._frame += dropped * int(self._values['frame_step'])   # the scene goes on
+            self.get_logger().warning(
+                f'camera woken {dropped + render - 1} periods late: {dropped} frame(s) dropped '
+                f'({self.dropped_frames} so far), {render - 1} rendered late',
+                throttle_duration_sec=5.0)
+        for k in range(render):
+            if k:
+                self.caught_up_frames += 1
+            self._tick()
+
+    def _tick(self) -> None:
+        t0 = time.perf_counter()
         if self._dirty:
             try:
                 self._warm = False

@@ -2,6 +2,8 @@
 and as its own process from the install tree)."""
 
 
+import math
+
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
@@ -187,3 +189,90 @@ def test_bounce_playback_is_continuous_and_loop_wraps():
     assert [scene_frame(k, 5, 'loop') for k in (0, 4, 5, 7)] == [0, 4, 5, 7]  # scene wraps
     assert scene_frame(9, 1, 'bounce') == 9
     assert 'playback' in validate_parameter('playback', 'reverse', {})
+
+
+def _rcl_wake_ups(clock, period, seconds, wake):
+    """Call ``wake()`` as the rcl timer does (a period missed by more than a period is skipped)
+    on a simulated clock ``clock['t']`` that ``wake`` advances by its rendering cost."""
+    t_end = clock['t'] + seconds
+    next_call = clock['t']
+    while clock['t'] < t_end:
+        clock['t'] = max(clock['t'], next_call)
+        now = clock['t']
+        next_call += period                     # rcl_timer_call: keep the phase, skip misses
+        if next_call < now:
+            next_call += math.ceil((now - next_call) / period) * period
+        wake()
+
+
+def _grid_frames(catch_up, costs, seconds):
+    """Frames a 10 Hz FrameGrid renders in ``seconds`` when frame i costs ``costs(i)`` s."""
+    from stereo_depth.synthetic_camera_node import FrameGrid
+    grid, clock, n = FrameGrid(10.0, catch_up), {'t': 1000.0}, [0]
+
+    def wake():
+        for _ in range(grid.due(clock['t'])[0]):
+            clock['t'] += costs(n[0])
+            n[0] += 1
+    _rcl_wake_ups(clock, 0.1, seconds, wake)
+    return n[0]
+
+
+def test_frame_grid_holds_the_rate_when_wake_ups_come_late():
+    from stereo_depth.synthetic_camera_node import FrameGrid
+    # every 4th frame takes 2.6 periods (a loaded machine), the others 0.2: 0.8 periods on
+    # average, so a camera with a real clock keeps its 10 Hz
+    costs = lambda i: 0.26 if i % 4 == 3 else 0.02        # noqa: E731
+    assert _grid_frames(3, costs, 60.0) == pytest.approx(600, abs=3)
+    # without catch-up the skipped periods are lost: the plain rcl timer's behaviour
+    assert _grid_frames(0, costs, 60.0) < 0.9 * 600          # 480: 1 in 5 lost
+    # on-time wake-ups: one frame each, exactly on the grid
+    grid = FrameGrid(10.0, catch_up=3)
+    assert [grid.due(5.0 + 0.1 * k + 0.003 * (k % 2)) for k in range(5)] == [(1, 0)] * 5
+    # a wake-up 10 periods late: 3 missed frames rendered late, 6 dropped (counted)
+    assert grid.due(5.0 + 0.1 * 4 + 1.0) == (4, 6)
+    assert grid.next_index == 15
+    # early (the timer's phase moved below the anchor): one frame, grid re-anchored
+    assert grid.due(5.0 + 0.1 * 15 - 0.02) == (1, 0)
+    assert grid.due(5.0 + 0.1 * 16 - 0.02) == (1, 0)
+    with pytest.raises(ValueError, match='rate'):
+        FrameGrid(0.0, 1)
+
+
+@pytest.mark.ros
+def test_free_running_node_publishes_every_period_or_counts_the_drop(ros_node):
+    """The node on a simulated clock, wakes as the rcl timer gives them: when rendering now and
+    then takes longer than the period the camera still publishes one frame per period, and
+    when it falls too far behind the frames it could not render are counted, not lost."""
+    cam = SyntheticCameraNode(context=ros_node.context, parameter_overrides=[
+        p for p in SMALL if p.name != 'rate'] + [Parameter('rate', value=10.0)])
+    try:
+        cam._timer.cancel()                     # the test wakes the node itself
+        c = _Collector(ros_node, {'objects/peg/pose_truth': PoseStamped})
+        clock = {'t': 1000.0}
+        cam._steady_clock = lambda: clock['t']
+        render = cam._source.render
+        n = {'k': 0}
+
+        def slow_render(frame):
+            n['k'] += 1
+            clock['t'] += 0.26 if n['k'] % 4 == 0 else 0.02
+            return render(frame)
+        cam._source.render = slow_render
+        _rcl_wake_ups(clock, 0.1, 20.0, cam._on_timer)
+        published, dropped = cam.frames_published, cam.dropped_frames
+        assert published == pytest.approx(200, abs=3), (published, dropped)
+        assert cam.caught_up_frames > 20 and dropped == 0
+        # far behind (1 s stalls): what cannot be caught up is dropped and counted
+        cam.set_parameters([Parameter('catch_up_frames', value=1)])
+        start_pub, start_next = cam.frames_published, cam._grid.next_index
+        for _ in range(5):
+            clock['t'] += 1.0
+            cam._on_timer()
+        new_pub, new_drop = cam.frames_published - start_pub, cam.dropped_frames - dropped
+        assert new_pub == 10 and 40 <= new_drop <= 60, (new_pub, new_drop)   # 2 per wake-up
+        assert new_pub + new_drop == cam._grid.next_index - start_next, \
+            'every period is published or counted as dropped'
+        spin_until([ros_node, cam], lambda: len(c.msgs['objects/peg/pose_truth']) >= 1, 10)
+    finally:
+        cam.destroy_node()

@@ -255,13 +255,22 @@ class VirtualLan:
                 'tx_dropped': tx_d}
 
     def ip_stats(self, host: str) -> Dict[str, int]:
-        """``host``'s IP reassembly counters (``/proc/net/snmp``: ReasmReqds, ReasmOKs,
-        ReasmFails) and the memory its incomplete fragments hold now (``/proc/net/sockstat``).
+        """``host``'s IP reassembly and UDP counters and the memory its incomplete fragments
+        hold now.
+
+        From ``/proc/net/snmp``: ``Reasm*`` (ReasmReqds, ReasmOKs, ReasmFails) and ``Udp*``
+        (e.g. ``UdpRcvbufErrors``: datagrams dropped because a socket's receive buffer was
+        full; ``UdpSndbufErrors``); from ``/proc/net/sockstat``: ``frag_memory_bytes``.
         """
         out = _run(['ip', 'netns', 'exec', self.namespaces[host], 'cat', '/proc/net/snmp',
                     '/proc/net/sockstat'])
-        ip = [line.split()[1:] for line in out.splitlines() if line.startswith('Ip:')]
-        stats = {k: int(v) for k, v in zip(ip[0], ip[1]) if k.startswith('Reasm')}
+        stats: Dict[str, int] = {}
+        for proto, keep in (('Ip:', 'Reasm'), ('Udp:', '')):
+            rows = [line.split()[1:] for line in out.splitlines() if line.startswith(proto)]
+            if len(rows) >= 2:
+                prefix = '' if keep else 'Udp'
+                stats.update({prefix + k: int(v) for k, v in zip(rows[0], rows[1])
+                              if k.startswith(keep)})
         for line in out.splitlines():
             if line.startswith('FRAG:'):
                 f = line.split()
