@@ -46,43 +46,48 @@ from typing import Any, Dict, List
 from stereo_manip_tools.bench_report import goal, results_dir, write_report
 from stereo_manip_tools.netns import list_namespaces, netns_unavailable_reason, VirtualLan
 
-# name: link rate [bit/s], one-way delay [s], frame loss; where the stereo node runs; DDS profile
-CONDITIONS: Dict[str, Dict[str, Any]] = {
-    'one_host': {'lan': False},
-    'lan_1g_0.5ms': {'rate': 1e9, 'delay': 0.5e-3, 'loss': 0.0},
-    'lan_1g_5ms_loss0.1': {'rate': 1e9, 'delay': 5e-3, 'loss': 0.001},
-    'lan_100m_5ms_loss0.1': {'rate': 100e6, 'delay': 5e-3, 'loss': 0.001},
+# the link conditions of issue #17: rate [bit/s], one-way delay [s], frame loss
+LINKS: Dict[str, Dict[str, float]] = {
+    f'lan_{r_name}_{d_name}{l_name}': {'rate': rate, 'delay': delay, 'loss': loss}
+    for r_name, rate in (('1g', 1e9), ('100m', 100e6))
+    for d_name, delay in (('0.5ms', 0.5e-3), ('5ms', 5e-3))
+    for l_name, loss in (('', 0.0), ('_loss0.1', 0.001))}
+# name: link, where the stereo node runs, DDS configuration (``dds``: the multi-host profile a
+# user gets, ``stereo_manip_bringup/config/fastdds_multihost.xml``, unless said otherwise)
+CONDITIONS: Dict[str, Dict[str, Any]] = {'one_host': {'lan': False}}
+CONDITIONS.update({name: dict(link) for name, link in LINKS.items()})
+CONDITIONS.update({
     # the reduction for a link the image pair does not fit: stereo next to the camera, a
     # cloud of every 4th pixel (~3 mm spacing at 0.45 m = the localiser's voxel) crosses it
     'lan_100m_5ms_loss0.1_stereo_on_camera_decim4': {
-        'rate': 100e6, 'delay': 5e-3, 'loss': 0.001, 'stereo_on_camera': True,
+        **LINKS['lan_100m_5ms_loss0.1'], 'stereo_on_camera': True,
         'stereo_parameters': {'point_decimation': 4}},
-    # large samples on a lossy link: writers heartbeat every 20 ms (Fast DDS default 3 s), so
-    # a lost fragment is repaired before the next image replaces the sample
-    'lan_1g_5ms_loss0.1_heartbeat20ms': {'rate': 1e9, 'delay': 5e-3, 'loss': 0.001,
-                                         'fastdds_profile': 'heartbeat20ms'},
-    'lan_100m_0.5ms': {'rate': 100e6, 'delay': 0.5e-3, 'loss': 0.0},
-    # UDP datagrams no larger than one Ethernet frame (RTPS fragments instead of IP): a lost
-    # frame costs one RTPS fragment, repaired alone; IP reassembly buffers never fill
-    'lan_1g_5ms_loss0.1_rtps_fragments': {'rate': 1e9, 'delay': 5e-3, 'loss': 0.001,
-                                          'fastdds_profile': 'max_message_1400'},
-    # the images taken best effort (REP 2003 sensor data) by the stereo node: a pair that lost
-    # a fragment is dropped, the stream goes on
-    'lan_1g_5ms_loss0.1_images_best_effort': {
-        'rate': 1e9, 'delay': 5e-3, 'loss': 0.001,
-        'stereo_parameters': {'input_qos': 'sensor_data'}},
+    'lan_100m_0.5ms_stereo_on_camera_decim4': {
+        **LINKS['lan_100m_0.5ms'], 'stereo_on_camera': True,
+        'stereo_parameters': {'point_decimation': 4}},
+    # what a user got before the profile: Fast DDS defaults over UDPv4 (64 kB datagrams that IP
+    # fragments, the system's 208 kB socket receive buffer)
+    'lan_1g_0.5ms_fastdds_defaults': {**LINKS['lan_1g_0.5ms'], 'dds': 'fastdds_defaults'},
+    'lan_1g_5ms_loss0.1_fastdds_defaults': {**LINKS['lan_1g_5ms_loss0.1'],
+                                            'dds': 'fastdds_defaults'},
+    # the profile without its 4 MB receive buffer = on a host whose net.core.rmem_max was not
+    # raised (Linux grants at most rmem_max; the default 208 kB is less than one image)
+    'lan_1g_5ms_loss0.1_profile_rcvbuf_default': {**LINKS['lan_1g_5ms_loss0.1'],
+                                                  'fastdds_profile': 'max_message_1400'},
+})
+# the batches measured in one exclusive-lock run each (a few minutes), each with its own peer
+BATCHES = {
+    '1g': ['one_host', *[n for n in LINKS if n.startswith('lan_1g')]],
+    '100m': ['one_host', *[n for n in LINKS if n.startswith('lan_100m')],
+             'lan_100m_5ms_loss0.1_stereo_on_camera_decim4',
+             'lan_100m_0.5ms_stereo_on_camera_decim4'],
+    'ablations': ['one_host', 'lan_1g_0.5ms_fastdds_defaults',
+                  'lan_1g_5ms_loss0.1_fastdds_defaults',
+                  'lan_1g_5ms_loss0.1_profile_rcvbuf_default'],
 }
 IMAGE_PAIR_BYTES = 2 * 640 * 480          # mono8 left + right, payload only
+# ablation profile only: the shipped one is a file of stereo_manip_bringup
 FASTDDS_PROFILES = {
-    'heartbeat20ms': '''<?xml version="1.0" encoding="UTF-8"?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <data_writer profile_name="stereo_manip_lan_writer" is_default_profile="true">
-    <times>
-      <heartbeatPeriod><sec>0</sec><nanosec>20000000</nanosec></heartbeatPeriod>
-    </times>
-  </data_writer>
-</profiles>
-''',
     'max_message_1400': '''<?xml version="1.0" encoding="UTF-8"?>
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <transport_descriptors>
@@ -117,8 +122,6 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
         path = Path(tempfile.gettempdir()) / f'pipeline_multihost_{spec["fastdds_profile"]}.xml'
         path.write_text(FASTDDS_PROFILES[spec['fastdds_profile']])
         extra_env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(path)
-        if '<userTransports>' in FASTDDS_PROFILES[spec['fastdds_profile']]:
-            extra_env['FASTDDS_BUILTIN_TRANSPORTS'] = None     # the profile's transport only
     where = {h: [s.node_name for s in specs] for h, specs in placement.items()}
     print(f'== {name}: {spec}', flush=True)
     lan = None
@@ -128,14 +131,19 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
         lan.create()
     try:
         run = run_graph(placement, opts.seconds + opts.warmup + 4.0, domain, lan,
-                        log=lambda s: print(s, flush=True), extra_env=extra_env)
+                        log=lambda s: print(s, flush=True), extra_env=extra_env,
+                        dds=spec.get('dds', 'multihost_profile'))
     finally:
         if lan is not None:
             left = lan.destroy()
             if left:
                 print(f'  WARNING: could not delete namespaces {left}', flush=True)
     result = summarise(run, warmup=opts.warmup, model_points=_model_points('peg'))
-    result.update(condition=spec, camera_rate_hz_set=opts.camera_rate,
+    dds = spec.get('dds', 'multihost_profile')
+    if spec.get('fastdds_profile'):
+        dds = f"ablation profile {spec['fastdds_profile']}"
+    result.update(condition=spec, camera_rate_hz_set=opts.camera_rate, batch=opts.batch,
+                  dds=dds if lan is not None else 'Fast DDS defaults, shared memory',
                   measured_at=time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
                   load_average_after=os.getloadavg(),
                   placement=where if lan is not None else 'all on one host',
@@ -159,8 +167,13 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
     return result
 
 
+def _peer(name: str, result: Dict[str, Any]) -> str:
+    """The one-host run measured in the same batch as ``name``."""
+    return f"one_host_{result['batch']}" if result.get('batch') else 'one_host'
+
+
 def report(results: Dict[str, Any], opts: argparse.Namespace, load_before: Any,
-           t0: float) -> None:
+           t0: float, previous: Dict[str, Any]) -> None:
     """Goals from the conditions measured so far; writes the result file."""
     def value(cond: str, *keys: str) -> float:
         v: Any = results.get(cond, {})
@@ -169,23 +182,34 @@ def report(results: Dict[str, Any], opts: argparse.Namespace, load_before: Any,
         return float(v) if isinstance(v, (int, float)) else float('nan')
 
     goals: List[Dict[str, Any]] = []
-    for cond in ('lan_1g_0.5ms', 'lan_1g_5ms_loss0.1'):     # NaN (unmet) if not measured
-        goals.append(goal(f'{cond}: corrected-pose rate at the controller host [Hz]', 10.0,
+    # issue #17: at 1 Gbit/s every camera frame gives a corrected pose at the controller
+    # (rate as the one-host benchmark states it: >= 9.9 Hz for a 10.00 Hz camera) within
+    # 120 ms p90; on 100 Mbit/s the same for the reduction (stereo next to the camera). NaN
+    # (unmet) where not measured.
+    goal_conditions = [n for n in LINKS if n.startswith('lan_1g')] + [
+        'lan_100m_5ms_loss0.1_stereo_on_camera_decim4',
+        'lan_100m_0.5ms_stereo_on_camera_decim4']
+    for cond in goal_conditions:
+        goals.append(goal(f'{cond}: corrected-pose rate at the controller host [Hz]', 9.9,
                           '>=', value(cond, 'rate_hz')))
+        goals.append(goal(f'{cond}: fraction of camera frames with a corrected pose at the '
+                          'controller', 1.0, '>=', value(cond, 'frames_with_corrected_pose')))
         goals.append(goal(f'{cond}: latency camera stamp -> controller p90 [ms]', 120.0,
                           '<=', value(cond, 'latency_ms', 'p90')))
     comparison = {}
-    base = results.get('one_host', {})
     for cond, r in results.items():
-        if cond == 'one_host' or 'error' in r or 'error' in base:
+        peer = _peer(cond, r)
+        if cond.startswith('one_host') or 'error' in r or 'error' in results.get(peer, {}):
             continue
         comparison[cond] = {
-            'rate_ratio_vs_one_host': value(cond, 'rate_hz') / value('one_host', 'rate_hz')
-            if value('one_host', 'rate_hz') else float('nan'),
+            'peer': peer,
+            'rate_ratio_vs_one_host': value(cond, 'rate_hz') / value(peer, 'rate_hz')
+            if value(peer, 'rate_hz') else float('nan'),
+            'frames_with_pose_one_host': value(peer, 'frames_with_corrected_pose'),
             'latency_p50_delta_ms': value(cond, 'latency_ms', 'p50')
-            - value('one_host', 'latency_ms', 'p50'),
+            - value(peer, 'latency_ms', 'p50'),
             'latency_p90_delta_ms': value(cond, 'latency_ms', 'p90')
-            - value('one_host', 'latency_ms', 'p90'),
+            - value(peer, 'latency_ms', 'p90'),
         }
     leftovers = [n for n in list_namespaces() if n.startswith('sm')]
     write_report(
@@ -197,30 +221,54 @@ def report(results: Dict[str, Any], opts: argparse.Namespace, load_before: Any,
         method=('three network namespaces (camera / perception / controller) on a simulated '
                 'LAN: TAP links, kernel tbf rate limit per host egress, a switch process adding '
                 'the one-way delay and the frame loss (netem semantics; sch_netem is not in '
-                'this kernel); DDS over UDPv4 with SUBNET discovery; latency = arrival at the '
-                'controller host - camera stamp, one shared clock'),
+                'this kernel); DDS over UDPv4 with SUBNET discovery and, unless a condition '
+                'says otherwise, the shipped multi-host Fast DDS profile '
+                '(stereo_manip_bringup/config/fastdds_multihost.xml); latency = arrival at the '
+                'controller host - camera stamp, one shared clock. Each batch (--batch) is one '
+                'exclusive-lock run with its own one-host peer (one_host_<batch>).'),
         namespaces_left_after_run=leftovers,
-        notes=('rate_hz = corrected poses arriving in the window / window length; latency and '
-               'ADD-S are over the poses that arrived, so in a run whose stream stalled '
-               '(see last_corrected_before_end_s, frames_with_corrected_pose) a met latency '
-               'goal covers only its first seconds. The stall under loss is IP reassembly '
-               'memory filling (host_counters_at_end: ReasmFails, frag_memory_bytes).'),
+        notes=('rate_hz = corrected poses arriving in the window / window length; '
+               'frames_with_corrected_pose = camera frames (truth poses the controller saw) in '
+               'the window that produced a corrected pose; latency and ADD-S are over the poses '
+               'that arrived. host_counters_at_end: per host, IP reassembly (ReasmFails, '
+               'frag_memory_bytes) and UDP counters (UdpRcvbufErrors: datagrams dropped at a '
+               'full socket receive buffer).'),
+        previous_run=previous,
         load_average_before=load_before, load_average_after=os.getloadavg(),
         wall_time_s=time.monotonic() - t0)
 
 
+def _previous_run(old: Dict[str, Any]) -> Dict[str, Any]:
+    """The figures of the last run before the shipped profile (kept visible, not re-measured
+    under the same names)."""
+    if not old.get('goals'):
+        return {}
+    keep = ('rate_hz', 'frames_with_corrected_pose', 'latency_ms', 'camera_rate_hz', 'condition')
+    return {
+        'date': old.get('date'),
+        'why_superseded': (
+            'measured with Fast DDS defaults over UDPv4 (64 kB datagrams, 208 kB socket '
+            'receive buffer) under the same condition names; a user of a multi-host cell now '
+            'gets the shipped profile, so the link conditions are re-measured with it, and the '
+            'defaults are re-measured as *_fastdds_defaults in the ablations batch. Goals then: '
+            '>= 10 Hz and p90 <= 120 ms at 1 Gbit/s.'),
+        'goals': old['goals'],
+        'conditions': {k: {f: v[f] for f in keep if f in v}
+                       for k, v in old.get('conditions', {}).items()}}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--seconds', type=float, default=25.0,
+    parser.add_argument('--seconds', type=float, default=20.0,
                         help='measured window per condition [s] (after the warm-up)')
-    parser.add_argument('--warmup', type=float, default=5.0,
+    parser.add_argument('--warmup', type=float, default=3.0,
                         help='seconds after the first corrected pose that are not measured')
     parser.add_argument('--camera-rate', type=float, default=10.0, help='camera rate [Hz]')
+    parser.add_argument('--batch', choices=list(BATCHES),
+                        help='measure this batch of conditions (one_host first, as its peer), '
+                             'keeping the other batches of the result file')
     parser.add_argument('--conditions', nargs='+', choices=list(CONDITIONS),
-                        default=list(CONDITIONS))
-    parser.add_argument('--merge', action='store_true',
-                        help='keep the other conditions of an existing result file (to measure '
-                             'the conditions in several shorter runs)')
+                        help='measure these conditions instead (default: every batch in turn)')
     opts = parser.parse_args()
 
     def on_term(*_: Any) -> None:
@@ -238,17 +286,25 @@ def main() -> int:
     load_before = os.getloadavg()
     t0 = time.monotonic()
     results: Dict[str, Any] = {}
-    previous = results_dir() / 'pipeline_multihost.json'
-    if opts.merge and previous.exists():
-        results = json.loads(previous.read_text()).get('conditions', {})
-    for name in opts.conditions:
-        try:
-            results[name] = run_condition(name, CONDITIONS[name], opts, domain)
-        except RuntimeError as exc:
-            print(f'  {name} failed: {str(exc)[:3000]}', flush=True)
-            results[name] = {'error': str(exc)[-6000:], 'condition': CONDITIONS[name]}
-        report(results, opts, load_before, t0)      # after each: a cut-off run keeps its part
-
+    previous_path = results_dir() / 'pipeline_multihost.json'
+    old = json.loads(previous_path.read_text()) if previous_path.exists() else {}
+    previous = old.get('previous_run') or _previous_run(old)
+    if opts.batch or opts.conditions:
+        results = {k: v for k, v in old.get('conditions', {}).items()
+                   if v.get('batch') != opts.batch or not opts.batch}
+    plan = ([(opts.batch, BATCHES[opts.batch])] if opts.batch else
+            [(None, opts.conditions)] if opts.conditions else list(BATCHES.items()))
+    for batch, names in plan:
+        opts.batch = batch
+        for name in names:
+            key = f'one_host_{batch}' if name == 'one_host' and batch else name
+            try:
+                results[key] = run_condition(name, CONDITIONS[name], opts, domain)
+            except RuntimeError as exc:
+                print(f'  {name} failed: {str(exc)[:3000]}', flush=True)
+                results[key] = {'error': str(exc)[-6000:], 'condition': CONDITIONS[name],
+                                'batch': batch}
+            report(results, opts, load_before, t0, previous)   # a cut-off run keeps its part
     return 0
 
 

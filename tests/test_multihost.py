@@ -179,6 +179,11 @@ def test_peg_in_hole_split_over_three_hosts_reaches_the_controller(tmp_path):
         f"camera host sent {hosts['camera']['sent_bytes']} B for {frames} frames")
     assert hosts['controller']['delivered_bytes'] > 0
     assert hosts['perception']['sent_bytes'] > 0
+    # the shipped multi-host profile was in force: no datagram larger than one Ethernet frame,
+    # so the IP layer of the perception host never had to reassemble the images
+    perception = run.counters['perception']
+    assert perception['ReasmReqds'] == 0, perception
+    assert perception['rx_bytes'] >= frames * 2 * 640 * 480
     assert all(math.isfinite(p['pose'][0]) for p in corrected)
 
 
@@ -225,3 +230,34 @@ def test_summarise_rate_latency_accuracy_and_link_on_a_known_log():
     stopped = summarise(run, warmup=2.0)
     assert stopped['rate_hz'] == pytest.approx(10.0 * 4 / 8, rel=0.05)
     assert stopped['last_corrected_before_end_s'] == pytest.approx(4.0, abs=0.2)
+
+
+def test_multihost_environment_names_the_shipped_profile():
+    """What ``multihost:=true`` and ``python -m stereo_manip_bringup.deployment`` give: SUBNET
+    discovery and a Fast DDS profile whose UDP datagrams fit one Ethernet frame, with a
+    receive buffer larger than one image pair."""
+    import xml.etree.ElementTree as ET
+    from stereo_manip_bringup.deployment import multihost_environment
+
+    env = multihost_environment(domain_id=42)
+    assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SUBNET' and env['ROS_DOMAIN_ID'] == '42'
+    ns = {'f': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    root = ET.parse(env['FASTRTPS_DEFAULT_PROFILES_FILE']).getroot()
+    transport = root.find('f:transport_descriptors/f:transport_descriptor', ns)
+    assert transport.find('f:type', ns).text == 'UDPv4'
+    assert int(transport.find('f:maxMessageSize', ns).text) <= 1500 - 20 - 8   # IP + UDP
+    assert int(transport.find('f:receiveBufferSize', ns).text) > 2 * 640 * 480
+    participant = root.find('f:participant', ns)
+    assert participant.get('is_default_profile') == 'true'
+    assert participant.find('f:rtps/f:useBuiltinTransports', ns).text == 'false'
+    used = participant.find('f:rtps/f:userTransports/f:transport_id', ns).text
+    assert used == transport.find('f:transport_id', ns).text
+
+
+def test_deployment_prints_export_lines(capsys):
+    from stereo_manip_bringup.deployment import main
+    assert main(['--domain-id', '7']) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert 'export ROS_DOMAIN_ID=7' in lines
+    assert any(line.startswith('export FASTRTPS_DEFAULT_PROFILES_FILE=') and
+               line.endswith('fastdds_multihost.xml') for line in lines)

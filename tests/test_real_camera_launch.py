@@ -66,8 +66,16 @@ def test_launch_builds_the_graph_from_arguments_and_params(monkeypatch):
             'use_joint'} <= set(declared)
     assert declared['params_file'].endswith('config/stereo_camera.yaml')
     opaque = [a for a in description if isinstance(a, _Recorded) and 'function' in a.kwargs]
-    context = {'params_file': str(PARAMS), 'camera_namespace': '/my_cam/', 'namespace': 'c1'}
+    context = {'params_file': str(PARAMS), 'camera_namespace': '/my_cam/', 'namespace': 'c1',
+               'multihost': 'false'}
     nodes = {n.kwargs['name']: n.kwargs for n in opaque[0].kwargs['function'](context)}
+    assert all(kw['additional_env'] == {} for kw in nodes.values())
+    # multihost:=true: every node gets SUBNET discovery and the shipped Fast DDS profile
+    multi = opaque[0].kwargs['function']({**context, 'multihost': 'true'})
+    for n in multi:
+        env = n.kwargs['additional_env']
+        assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SUBNET'
+        assert Path(env['FASTRTPS_DEFAULT_PROFILES_FILE']).is_file()
     assert set(nodes) == {'stereo_depth_node', 'object_localizer', 'contact_correction',
                           'joint_estimator'}
     for kw in nodes.values():

@@ -4,11 +4,14 @@ this repository's own environment use ``scripts/ros2run stereo_manip_bringup dem
     ros2 launch stereo_manip_bringup pipeline.launch.py scene:=peg_in_hole
     ros2 launch stereo_manip_bringup pipeline.launch.py scene:=revolute_pair rate:=5.0
     ros2 launch stereo_manip_bringup pipeline.launch.py scene:=peg_in_hole use_camera:=false
+    ros2 launch stereo_manip_bringup pipeline.launch.py use_camera:=false multihost:=true
 
 The nodes, parameters and remappings are the demo's (``stereo_manip_bringup.demo.STAGES``), so
 the launched graph is the one the demo scores; here the synthetic camera free-runs at ``rate``
 instead of waiting for a software trigger. ``use_camera:=false`` leaves the camera out, for a
 real stereo driver publishing ``left/image_rect``, ``right/image_rect`` and camera infos.
+``multihost:=true`` gives every node the multi-host environment
+(``stereo_manip_bringup.deployment``: SUBNET discovery, the shipped Fast DDS profile).
 """
 
 from launch import LaunchDescription
@@ -17,6 +20,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from stereo_manip_bringup.demo import STAGES
+from stereo_manip_bringup.deployment import multihost_environment
 
 
 def _nodes(context):
@@ -25,6 +29,7 @@ def _nodes(context):
         raise RuntimeError(f'unknown scene {scene!r}; choose one of: {", ".join(STAGES)}')
     rate = float(LaunchConfiguration('rate').perform(context))
     use_camera = LaunchConfiguration('use_camera').perform(context).lower() == 'true'
+    multihost = LaunchConfiguration('multihost').perform(context).lower() == 'true'
     actions = []
     for spec in STAGES[scene]().nodes:
         params = dict(spec.parameters)
@@ -37,7 +42,9 @@ def _nodes(context):
         actions.append(Node(package=spec.package, executable=spec.executable,
                             name=spec.node_name, parameters=[params],
                             remappings=list(remappings.items()),
-                            additional_env=dict(spec.env), output='screen'))
+                            additional_env={**spec.env, **(multihost_environment()
+                                                           if multihost else {})},
+                            output='screen'))
     return actions
 
 
@@ -49,5 +56,8 @@ def generate_launch_description():
                               description='synthetic camera rate [Hz]'),
         DeclareLaunchArgument('use_camera', default_value='true',
                               description='start the synthetic camera'),
+        DeclareLaunchArgument('multihost', default_value='false',
+                              description='nodes on several machines: SUBNET discovery and '
+                                          'the Fast DDS profile config/fastdds_multihost.xml'),
         OpaqueFunction(function=_nodes),
     ])

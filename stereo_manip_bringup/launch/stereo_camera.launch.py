@@ -20,6 +20,9 @@ starts, in ``namespace``:
 Every parameter comes from ``params_file`` (default: this package's
 ``config/stereo_camera.yaml``, a template to copy and edit: models, camera frame and mount, the
 moving/fixed objects and link names). The synthetic demo graph is ``pipeline.launch.py``.
+With the camera on another machine, ``multihost:=true`` gives every node the multi-host
+environment (``stereo_manip_bringup.deployment``: SUBNET discovery, the shipped Fast DDS
+profile ``config/fastdds_multihost.xml``); start the driver with the same two variables.
 """
 
 import os
@@ -30,6 +33,8 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+
+from stereo_manip_bringup.deployment import multihost_environment
 
 
 def _nodes(context):
@@ -53,7 +58,9 @@ def _nodes(context):
     fixed = contact.get('fixed_object', 'hole_block')
     link_a = joint.get('link_a_frame', 'link_a')
     link_b = joint.get('link_b_frame', 'link_b')
+    multihost = LaunchConfiguration('multihost').perform(context).lower() == 'true'
     common = dict(namespace=LaunchConfiguration('namespace'), parameters=[params_file],
+                  additional_env=multihost_environment() if multihost else {},
                   output='screen')
     return [
         Node(package='stereo_depth', executable='stereo_depth_node', name='stereo_depth_node',
@@ -90,5 +97,9 @@ def generate_launch_description():
                               description='start contact_correction_node'),
         DeclareLaunchArgument('use_joint', default_value='false',
                               description='start joint_estimator_node'),
+        DeclareLaunchArgument('multihost', default_value='false',
+                              description='camera, perception and controller on different '
+                                          'machines: SUBNET discovery and the Fast DDS profile '
+                                          'config/fastdds_multihost.xml'),
         OpaqueFunction(function=_nodes),
     ])

@@ -9,12 +9,11 @@ on its own host logging every corrected pose on arrival. :func:`summarise` turns
 the corrected-pose rate, the end-to-end latency (arrival - camera stamp; the namespaces share
 one clock) and the bytes each host sent over the LAN.
 
-Every participant on the simulated LAN uses ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` and
-UDPv4 only (``FASTDDS_BUILTIN_TRANSPORTS=UDPv4``), as between real machines. (Fast DDS 2.14
-already keeps shared memory to participants with the same host id, which it derives from the
-interface addresses, so different namespaces talk UDP anyway; the explicit setting keeps it
-so whatever the version.) The one-host peer uses the defaults: localhost discovery, shared
-memory.
+Every participant on the simulated LAN gets what a user of a multi-host cell gets
+(:func:`stereo_manip_bringup.deployment.multihost_environment`: SUBNET discovery and the
+shipped Fast DDS profile, UDPv4 only), or, for comparison, Fast DDS's defaults over UDPv4
+(``dds='fastdds_defaults'``: 64 kB datagrams, system socket buffers). The one-host peer uses
+the defaults: localhost discovery, shared memory.
 """
 
 from __future__ import annotations
@@ -33,9 +32,10 @@ from typing import Any, Dict, List, Optional, Sequence
 import numpy as np
 
 from stereo_manip_bringup.demo import NodeSpec, STAGES
+from stereo_manip_bringup.deployment import multihost_environment
 
 __all__ = ['HOSTS', 'peg_in_hole_placement', 'run_graph', 'summarise', 'GraphRun',
-           'CORRECTED_TOPIC', 'TRUTH_TOPIC']
+           'CORRECTED_TOPIC', 'TRUTH_TOPIC', 'ros_environment', 'DDS_CHOICES']
 
 HOSTS = ('camera', 'perception', 'controller')
 CORRECTED_TOPIC = '/objects/peg/pose_corrected'
@@ -82,19 +82,30 @@ class GraphRun:
     cpu_fraction: Dict[str, float] = field(default_factory=dict)   # of one core, camera on
 
 
-def ros_environment(domain_id: int, over_lan: bool) -> Dict[str, str]:
-    """Environment of every participant: one domain; SUBNET discovery and UDPv4 only over the
-    simulated LAN; localhost discovery and Fast DDS defaults (shared memory) on one host."""
+DDS_CHOICES = ('multihost_profile', 'fastdds_defaults')
+
+
+def ros_environment(domain_id: int, over_lan: bool,
+                    dds: str = 'multihost_profile') -> Dict[str, str]:
+    """Environment of every participant: one domain; over the simulated LAN the multi-host
+    environment a user gets (``dds='multihost_profile'``) or Fast DDS's defaults over UDPv4
+    (``'fastdds_defaults'``, SUBNET discovery); on one host localhost discovery and Fast DDS
+    defaults (shared memory)."""
+    if dds not in DDS_CHOICES:
+        raise ValueError(f'dds must be one of {DDS_CHOICES}, got {dds!r}')
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(int(domain_id))
     env['PYTHONUNBUFFERED'] = '1'
-    env.pop('ROS_STATIC_PEERS', None)
-    if over_lan:
+    for key in ('ROS_STATIC_PEERS', 'FASTDDS_BUILTIN_TRANSPORTS',
+                'FASTRTPS_DEFAULT_PROFILES_FILE'):
+        env.pop(key, None)
+    if over_lan and dds == 'multihost_profile':
+        env.update(multihost_environment())
+    elif over_lan:
         env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SUBNET'
         env['FASTDDS_BUILTIN_TRANSPORTS'] = 'UDPv4'
     else:
         env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-        env.pop('FASTDDS_BUILTIN_TRANSPORTS', None)
     return env
 
 
@@ -153,7 +164,8 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
               lan: Any = None, controller_host: str = 'controller',
               ready_timeout: float = 120.0, log_dir: Optional[Path] = None,
               log: Any = print, stop_after_corrected: int = 0,
-              extra_env: Optional[Dict[str, Optional[str]]] = None) -> GraphRun:
+              extra_env: Optional[Dict[str, Optional[str]]] = None,
+              dds: str = 'multihost_profile') -> GraphRun:
     """Start the graph, then the camera when every perception subscription is matched, listen
     ``duration`` s on the controller, stop everything (SIGINT, then SIGKILL).
 
@@ -164,12 +176,13 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
         poses (0: run the whole ``duration``).
     :param extra_env: added to every participant's environment (e.g. a Fast DDS profile);
         a None value removes that variable.
+    :param dds: DDS configuration over the LAN (see :func:`ros_environment`).
     :raises RuntimeError: the graph did not come up within ``ready_timeout`` s or a node died
         (with the tails of every log).
     """
     from stereo_manip_tools.processes import executable_path
 
-    env = ros_environment(domain_id, lan is not None)
+    env = ros_environment(domain_id, lan is not None, dds)
     for key, value in (extra_env or {}).items():
         if value is None:
             env.pop(key, None)

@@ -100,7 +100,8 @@ def test_launch_file_builds_the_demo_graph(monkeypatch):
     made = []
 
     class Config:
-        values = {'scene': 'revolute_pair', 'rate': '5.0', 'use_camera': 'true'}
+        values = {'scene': 'revolute_pair', 'rate': '5.0', 'use_camera': 'true',
+                  'multihost': 'false'}
 
         def __init__(self, name):
             self.name = name
@@ -125,7 +126,8 @@ def test_launch_file_builds_the_demo_graph(monkeypatch):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     description = module.generate_launch_description()
-    assert [a[1] for a in description if a[0] == 'arg'] == ['scene', 'rate', 'use_camera']
+    assert [a[1] for a in description if a[0] == 'arg'] == [
+        'scene', 'rate', 'use_camera', 'multihost']
     opaque = [a[1] for a in description if a[0] == 'opaque'][0]
     opaque(None)
     names = [n['name'] for n in made]
@@ -133,8 +135,17 @@ def test_launch_file_builds_the_demo_graph(monkeypatch):
     camera = made[0]
     assert camera['parameters'][0]['trigger'] is False and camera['parameters'][0]['rate'] == 5.0
     assert all(n['additional_env']['OPENBLAS_NUM_THREADS'] == '1' for n in made)
+    assert not any('FASTRTPS_DEFAULT_PROFILES_FILE' in n['additional_env'] for n in made)
     for n in made:
         assert executable_path(n['package'], n['executable']).is_file()
+    made.clear()                        # multihost:=true adds the multi-host environment
+    Config.values['multihost'] = 'true'
+    opaque(None)
+    for n in made:
+        assert n['additional_env']['OPENBLAS_NUM_THREADS'] == '1'
+        assert n['additional_env']['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SUBNET'
+        assert Path(n['additional_env']['FASTRTPS_DEFAULT_PROFILES_FILE']).name == \
+            'fastdds_multihost.xml'
 
 
 @pytest.mark.process
