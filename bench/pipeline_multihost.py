@@ -15,16 +15,24 @@ kernel has no ``sch_netem``, so the switch process does it and its own lateness 
 The peer in the same run is the one-host graph: the same processes on this machine, localhost
 discovery and Fast DDS shared memory.
 
+Every participant on the LAN gets what a user of a multi-host cell gets
+(``stereo_manip_bringup.deployment``: SUBNET discovery and the shipped Fast DDS profile
+``config/fastdds_multihost.xml``), unless a condition says otherwise: the link conditions of
+issue #17 (1 Gbit/s and 100 Mbit/s, 0.5 ms and 5 ms one way, with and without 0.1 % frame
+loss), the reduction for a link the image pair does not fit (the stereo node on the camera
+host, sending a decimated point cloud instead of the images), and ablations (Fast DDS's
+defaults; the profile without its receive buffer; readers answering heartbeats later).
+
 Per condition: corrected-pose rate at the controller, latency = arrival at the controller -
 camera stamp (every namespace shares this machine's clock) p50/p90/p95/max, gaps between
 poses, the fraction of camera frames that produced a corrected pose, the bytes per second each
-host sent over the LAN, the switch's CPU and lateness, CPU per node. Also the reduction for a
-link the image pair does not fit: the stereo node on the camera host, sending the demo's
-decimated point cloud instead of the images.
+host sent over the LAN, IP-reassembly and UDP counters per host, the switch's CPU and
+lateness, CPU per node.
 
-Usage::
+Usage (three batches of a few minutes, each with its own one-host peer)::
 
-    ROS_DOMAIN_ID=76 flock -x /work/coord/cpu.lock .venv/bin/python bench/pipeline_multihost.py
+    ROS_DOMAIN_ID=76 /work/coord/cpu_exclusive .venv/bin/python bench/pipeline_multihost.py \
+        --batch 1g          # then --batch 100m, --batch ablations
     python bench/pipeline_multihost.py --seconds 20 --conditions one_host lan_1g_0.5ms
 
 Needs root (network namespaces; without, it says why and exits 0 leaving the results as they
@@ -74,6 +82,14 @@ CONDITIONS.update({
     # raised (Linux grants at most rmem_max; the default 208 kB is less than one image)
     'lan_1g_5ms_loss0.1_profile_rcvbuf_default': {**LINKS['lan_1g_5ms_loss0.1'],
                                                   'fastdds_profile': 'max_message_1400'},
+    # the profile + readers that answer a heartbeat after 40 ms (Fast DDS: 5 ms): a writer
+    # whose history is full (KEEP_LAST 1) piggybacks heartbeats on the fragments while it sends
+    # an image; on a slow link the rest of the image is still queued, the reader NACKs it and
+    # the writer sends it twice. Waiting longer avoids that, and delays real repairs as much.
+    'lan_100m_0.5ms_heartbeat_response_40ms': {**LINKS['lan_100m_0.5ms'],
+                                               'fastdds_profile': 'heartbeat_response_40ms'},
+    'lan_1g_5ms_loss0.1_heartbeat_response_40ms': {
+        **LINKS['lan_1g_5ms_loss0.1'], 'fastdds_profile': 'heartbeat_response_40ms'},
 })
 # the batches measured in one exclusive-lock run each (a few minutes), each with its own peer
 BATCHES = {
@@ -83,11 +99,28 @@ BATCHES = {
              'lan_100m_0.5ms_stereo_on_camera_decim4'],
     'ablations': ['one_host', 'lan_1g_0.5ms_fastdds_defaults',
                   'lan_1g_5ms_loss0.1_fastdds_defaults',
-                  'lan_1g_5ms_loss0.1_profile_rcvbuf_default'],
+                  'lan_1g_5ms_loss0.1_profile_rcvbuf_default',
+                  'lan_100m_0.5ms_heartbeat_response_40ms',
+                  'lan_1g_5ms_loss0.1_heartbeat_response_40ms'],
 }
 IMAGE_PAIR_BYTES = 2 * 640 * 480          # mono8 left + right, payload only
-# ablation profile only: the shipped one is a file of stereo_manip_bringup
+
+
+def _shipped_profile_with(block: str) -> str:
+    """The shipped multi-host profile with ``block`` added after its participant profile."""
+    from stereo_manip_bringup.deployment import multihost_profile_path
+    text = multihost_profile_path().read_text()
+    return text.replace('</participant>', '</participant>\n' + block, 1)
+
+
+# ablation profiles only: the shipped one is a file of stereo_manip_bringup
 FASTDDS_PROFILES = {
+    'heartbeat_response_40ms': lambda: _shipped_profile_with('''  <data_reader profile_name="\
+stereo_manip_reader" is_default_profile="true">
+    <times>
+      <heartbeatResponseDelay><sec>0</sec><nanosec>40000000</nanosec></heartbeatResponseDelay>
+    </times>
+  </data_reader>'''),
     'max_message_1400': '''<?xml version="1.0" encoding="UTF-8"?>
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <transport_descriptors>
@@ -120,7 +153,8 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
     extra_env: Dict[str, Any] = {}
     if spec.get('fastdds_profile'):
         path = Path(tempfile.gettempdir()) / f'pipeline_multihost_{spec["fastdds_profile"]}.xml'
-        path.write_text(FASTDDS_PROFILES[spec['fastdds_profile']])
+        text = FASTDDS_PROFILES[spec['fastdds_profile']]
+        path.write_text(text() if callable(text) else text)
         extra_env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(path)
     where = {h: [s.node_name for s in specs] for h, specs in placement.items()}
     print(f'== {name}: {spec}', flush=True)
@@ -290,8 +324,10 @@ def main() -> int:
     old = json.loads(previous_path.read_text()) if previous_path.exists() else {}
     previous = old.get('previous_run') or _previous_run(old)
     if opts.batch or opts.conditions:
+        # the other batches' figures stay; figures of the run before the profile (no batch)
+        # are in previous_run only
         results = {k: v for k, v in old.get('conditions', {}).items()
-                   if v.get('batch') != opts.batch or not opts.batch}
+                   if v.get('batch') and v.get('batch') != opts.batch}
     plan = ([(opts.batch, BATCHES[opts.batch])] if opts.batch else
             [(None, opts.conditions)] if opts.conditions else list(BATCHES.items()))
     for batch, names in plan:
