@@ -13,6 +13,12 @@ i.e. its "exposure"; with ``trigger`` false the camera free-runs at ``rate``):
   ``occlusion_truth`` (sensor_msgs/Image mono8, 255 where the left pixel is not seen by the
   right camera).
 
+Free-running, the camera keeps its rate like hardware with its own clock: frames are due on a
+steady grid of period ``1 / rate`` (:class:`FrameGrid`), and a wake-up that comes more than a
+period late (a loaded machine, a publish blocked on a full network link) still renders the
+missed frames, up to ``catch_up_frames`` of them; older ones are dropped and counted
+(``dropped_frames`` and ``caught_up_frames`` in /diagnostics), never skipped silently.
+
 The optical frames follow REP 103 (z forward, x right, y down); the left one is the reference.
 Parameters are validated when declared and when set; a refused value keeps the old one and
 the reason is returned to the caller and logged.
