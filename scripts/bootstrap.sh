@@ -54,7 +54,7 @@ fi
 CALLER_AMENT_PREFIX_PATH=${AMENT_PREFIX_PATH:-}
 export AMENT_PREFIX_PATH=$VENV CMAKE_PREFIX_PATH=$VENV
 STAMP=$ROOT/install/.bootstrap_build_stamp
-PKG_DIRS=(msgs stereo_manip_tools stereo_depth object_localizer contact_correction joint_estimator ip_modeler
+PKG_DIRS=(msgs stereo_manip_models stereo_manip_tools stereo_depth object_localizer contact_correction joint_estimator ip_modeler
           stereo_manip_bringup)
 # Interfaces a ROS install has but the PyPI wheels lack (tf2_msgs): ros_compat/ holds stand-ins
 # with the upstream names and definitions, behind a COLCON_IGNORE so that `colcon build` on a

@@ -11,7 +11,7 @@ cd "$ROOT"
 # shellcheck source=compat_packages.sh
 . "$ROOT/scripts/compat_packages.sh"
 mapfile -t COMPAT_DIRS < <(compat_package_dirs "$ROOT" "$ROOT/.venv:$CALLER_AMENT_PREFIX_PATH")
-colcon --log-base "$ROOT/log" build --base-paths msgs stereo_manip_tools stereo_depth \
+colcon --log-base "$ROOT/log" build --base-paths msgs stereo_manip_models stereo_manip_tools stereo_depth \
   object_localizer contact_correction joint_estimator ip_modeler stereo_manip_bringup \
   "${COMPAT_DIRS[@]}" \
   --build-base build --install-base install --symlink-install --packages-select "$@" \

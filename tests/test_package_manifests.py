@@ -87,8 +87,19 @@ def test_no_stale_or_unresolvable_keys(package):
                       'geometry_msgs', 'nav_msgs', 'sensor_msgs', 'python3-skimage',
                       'stereo_depth', 'object_localizer', 'contact_correction',
                       'joint_estimator', 'ip_modeler', 'python3-matplotlib',
-                      'python3-open3d-pip'}
+                      'python3-open3d-pip', 'stereo_manip_models'}
     stale = sorted((run | test) - used - allowed_unused)
     assert not stale, f'{package}/package.xml declares keys nothing imports: {stale}'
     # python3-numba has no noble definition in rosdep: declaring it breaks rosdep install
     assert 'python3-numba' not in run | test
+
+
+@pytest.mark.parametrize('package', sorted(PACKAGES))
+def test_model_readers_depend_on_the_model_package(package):
+    """Code that loads shipped models by name needs the data package installed with it."""
+    run, _, _ = manifest(package)
+    src = ROOT / PACKAGES[package]
+    readers = [p for p in (src / package).rglob('*.py') if 'find_model' in p.read_text()]
+    if readers:
+        assert 'stereo_manip_models' in run, \
+            f'{package} loads models ({readers[0].name}) without exec_depend stereo_manip_models'

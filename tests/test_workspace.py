@@ -27,9 +27,15 @@ def console_scripts(package: str):
 
 def test_ament_index_finds_every_package():
     found = get_packages_with_prefixes()
-    for pkg in PYTHON_PACKAGES + ['stereo_manip_msgs']:
+    for pkg in PYTHON_PACKAGES + ['stereo_manip_msgs', 'stereo_manip_models']:
         assert pkg in found, f'{pkg} missing from the ament index'
         assert (Path(get_package_share_directory(pkg)) / 'package.xml').is_file()
+
+
+def test_models_are_installed_by_their_data_package():
+    shipped = sorted(p.name for p in (ROOT / 'stereo_manip_models' / 'models').glob('*.obj'))
+    installed = Path(get_package_share_directory('stereo_manip_models')) / 'models'
+    assert shipped and sorted(p.name for p in installed.glob('*.obj')) == shipped
 
 
 @pytest.mark.parametrize('package', PYTHON_PACKAGES)

@@ -1,9 +1,9 @@
 """Polygon mesh I/O: the one loader every package uses for object models (pure numpy).
 
 Object models ship as Wavefront OBJ files in metres with polygon faces preserved (a box has six
-quadrilateral faces, not twelve triangles), installed by the ``stereo_depth`` package under
-``share/stereo_depth/models/``. Faces are counter-clockwise seen from outside, so the right-hand
-normal points outward.
+quadrilateral faces, not twelve triangles), installed by the data package
+``stereo_manip_models`` under ``share/stereo_manip_models/models/``. Faces are counter-clockwise
+seen from outside, so the right-hand normal points outward.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from stereo_manip_tools.files import open_regular_file
 
 __all__ = ['PolygonMesh', 'load_obj', 'save_obj', 'find_model', 'MODEL_PACKAGE']
 
-MODEL_PACKAGE = 'stereo_depth'
+MODEL_PACKAGE = 'stereo_manip_models'
 
 
 @dataclass
@@ -136,8 +136,8 @@ def _model_dirs() -> Sequence[Path]:
 def find_model(name: str, directories: Optional[Sequence[Path]] = None) -> Path:
     """Path of the shipped model ``<name>.obj``.
 
-    Looks in ``$STEREO_MANIP_MODEL_PATH``, then ``share/stereo_depth/models`` of the installed
-    package, then the source tree.
+    Looks in ``$STEREO_MANIP_MODEL_PATH``, then ``share/stereo_manip_models/models`` of the
+    installed package, then the source tree.
 
     :raises FileNotFoundError: naming the directories searched.
     """

@@ -1,4 +1,4 @@
-"""Generator of the object models shipped in ``stereo_depth/models/`` (pure numpy).
+"""Generator of the object models shipped in ``stereo_manip_models/models/`` (pure numpy).
 
 Run ``python -m stereo_depth.synthetic.make_models [out_dir]`` to (re)write every model; the
 committed OBJ files are exactly its output, so the models are reproducible. All models are in
@@ -32,6 +32,9 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 
 from stereo_manip_tools.mesh_io import PolygonMesh, save_obj
+
+# the source folder of the data package stereo_manip_models (the committed models)
+SOURCE_MODELS_DIR = Path(__file__).resolve().parents[3] / 'stereo_manip_models' / 'models'
 
 __all__ = [
     'box_mesh', 'peg', 'hole_block', 'slot_block', 'table', 'cube', 'sphere', 'cylinder', 'torus',
@@ -358,9 +361,9 @@ def write_models(out_dir: Path) -> List[Path]:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """Command line: ``make_models [out_dir]`` (default: the package's ``models/`` folder)."""
+    """Command line: ``make_models [out_dir]`` (default: ``stereo_manip_models/models/``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    out = Path(argv[0]) if argv else Path(__file__).resolve().parents[2] / 'models'
+    out = Path(argv[0]) if argv else SOURCE_MODELS_DIR
     for p in write_models(out):
         print(p)
 
