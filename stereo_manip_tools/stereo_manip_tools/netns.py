@@ -37,6 +37,7 @@ import json
 import os
 from pathlib import Path
 import random
+import re
 import select
 import shutil
 import signal
@@ -197,10 +198,34 @@ class VirtualLan:
                     _run(['ip', 'netns', 'exec', self.namespaces[host], 'tc', 'qdisc', 'add',
                           'dev', 'eth0', 'root', 'tbf', 'rate', f'{int(rate)}bit', 'burst',
                           str(burst), 'limit', str(limit)])
+            self._add_static_neighbours()
         except BaseException:
             self.destroy()
             raise
         return self
+
+    def _add_static_neighbours(self) -> None:
+        """Give every host a permanent ARP entry for every other host.
+
+        The switch drops a ``loss`` fraction of *all* frames, ARP included; a lost ARP request
+        makes the kernel wait ``retrans_time`` (1 s) before asking again and hold the unicast
+        datagrams meanwhile, a one-second stall at start that no link of the simulated kind
+        adds and that would dominate short measurements. Static entries leave only the delay
+        and loss of the data frames themselves.
+        """
+        macs = {}
+        for host in self.hosts:
+            link = _run(['ip', '-n', self.namespaces[host], '-o', 'link', 'show', 'eth0'])
+            match = re.search(r'link/ether ([0-9a-f:]{17})', link)
+            if match is None:
+                raise NetnsError(f'no MAC address on {self.namespaces[host]} eth0: {link}')
+            macs[host] = match.group(1)
+        for host in self.hosts:
+            for other in self.hosts:
+                if other != host:
+                    _run(['ip', '-n', self.namespaces[host], 'neigh', 'replace',
+                          self.addresses[other], 'lladdr', macs[other], 'dev', 'eth0',
+                          'nud', 'permanent'])
 
     def destroy(self) -> List[str]:
         """Stop the switch and delete the namespaces this object created (by name).
