@@ -169,6 +169,7 @@ def refine_revolute_marker(model: RevoluteModel, R: np.ndarray, p: np.ndarray,
     :param side: marker side [m] (given, or :func:`estimate_marker_side`).
     :returns: ``{'model', 'angles' (N,), 'information' (N, 6, 6) at the final joint poses,
         'sigma_n' (corner noise in normalised image units, from the weighted residuals),
+        'neg2_log_likelihood' of the frames under the per-frame model (with ``sigma_n``),
         'covariance' (9, 9) of the local parameters, 'axis_angle_std_in_a/b' [rad],
         'axis_point_std' [m] (across the axis at the data's centre)}``.
     """
@@ -199,6 +200,10 @@ def refine_revolute_marker(model: RevoluteModel, R: np.ndarray, p: np.ndarray,
     chi = np.einsum('nji,nj->ni', L, r)
     n = R.shape[0]
     sigma_n = float(np.sqrt(np.sum(chi ** 2) / max(5 * n - 9, 1)))
+    # -2 log-likelihood of the frames under this noise model (covariance sigma_n^2 W^-1)
+    logdet = np.linalg.slogdet(W)[1]
+    neg2ll = float(np.sum(chi ** 2) / sigma_n ** 2 + np.sum(
+        6.0 * np.log(2.0 * np.pi) + 12.0 * np.log(sigma_n) - logdet))
     # first-order covariance of the local parameters at the solution
     build = _build(m)
 
@@ -229,6 +234,7 @@ def refine_revolute_marker(model: RevoluteModel, R: np.ndarray, p: np.ndarray,
     P = np.eye(3) - np.outer(m.axis_in_b, m.axis_in_b)
     cov_c = P @ G @ cov @ G.T @ P
     return {'model': m, 'angles': q, 'information': W, 'sigma_n': sigma_n, 'covariance': cov,
+            'neg2_log_likelihood': neg2ll,
             'axis_angle_std_in_a': float(np.sqrt(max(np.trace(cov[:2, :2]), 0.0))),
             'axis_angle_std_in_b': float(np.sqrt(max(np.trace(cov[2:4, 2:4]), 0.0))),
             'axis_point_std': float(np.sqrt(max(np.trace(cov_c), 0.0)))}

@@ -297,14 +297,33 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
         except (DegenerateMotionError, ValueError) as e:
             result.failures[t] = str(e)
             continue
-        R_sel, p_sel = Rc[rows, choice], pc[rows, choice]
-        fit = make_fit(model, R_sel, p_sel, sp, sr, correction, inliers, ray_ratio)
-        fit.repaired = (choice != 0) & fit.inliers      # twins used by inlier frames
-        fit.scale_estimated = estimated or (t == JointType.SPHERICAL and sigma_rotation is None)
-        fit.extra['line_of_sight_noise_ratio'] = ray_ratio
-        fit.score = bic_score(fit, max(threshold, outlier_cost(sp, sr)))
+
+        def scored(model, inliers, choice, sp, sr, estimated):
+            R_sel, p_sel = Rc[rows, choice], pc[rows, choice]
+            fit = make_fit(model, R_sel, p_sel, sp, sr, correction, inliers, ray_ratio)
+            fit.repaired = (choice != 0) & fit.inliers      # twins used by inlier frames
+            fit.scale_estimated = estimated or (t == JointType.SPHERICAL
+                                                and sigma_rotation is None)
+            fit.extra['line_of_sight_noise_ratio'] = ray_ratio
+            fit.score = bic_score(fit, max(threshold, outlier_cost(sp, sr)))
+            return fit, (R_sel, p_sel)
+
+        fit, chosen[t] = scored(model, inliers, choice, sp, sr, estimated)
+        if robust and Rc.shape[1] > 1 and fit.repaired[fit.inliers].mean() > 0.5:
+            # most inliers replaced by a twin: a detector returns the better-fitting solution
+            # more often than not, so check the hypothesis of (almost) no flips, fitted to the
+            # measured poses alone, and keep the one with the lower BIC
+            try:
+                rf0 = robust_fit(t, Rc[:, :1], pc[:, :1], sigma_position, sr_t,
+                                 min_rotation_range, min_translation_range, threshold,
+                                 refine=refine, rng=rng, ray_ratio=ray_ratio)
+                fit0, sel0 = scored(rf0.model, rf0.inliers, rf0.choice, rf0.sigma_position,
+                                    rf0.sigma_rotation, rf0.scale_estimated)
+                if fit0.score < fit.score:
+                    fit, chosen[t] = fit0, sel0
+            except (DegenerateMotionError, ValueError):
+                pass
         result.candidates[t] = fit
-        chosen[t] = (R_sel, p_sel)
     result.candidates = {t: result.candidates[t] for t in types if t in result.candidates}
     result.failures = {t: result.failures[t] for t in types if t in result.failures}
     if not result.candidates:
@@ -335,6 +354,9 @@ def _marker_refit(fit: JointFit, Rc: np.ndarray, pc: np.ndarray, ray_ratio: floa
     """The revolute ``fit`` refitted on its inliers (same twins) with per-frame marker
     information (:func:`joint_estimator.marker_noise.refine_revolute_marker`).
 
+    The refit is used only when the per-frame marker model explains the inliers' residuals
+    better (lower -2 log-likelihood) than the isotropic model with the line-of-sight ratio, so
+    a track that merely looks anisotropic (a noisy ratio from few frames) keeps its fit.
     The inliers are kept: re-classifying the frames under the per-frame Gaussian model kept
     nearly all of them and made the axis line worse on the issue-14 tracks (p95 5.1 -> 8.6 mm
     on 20 tracks): the frames the robust fit rejects are not described by that model (a marker
@@ -360,6 +382,14 @@ def _marker_refit(fit: JointFit, Rc: np.ndarray, pc: np.ndarray, ray_ratio: floa
         res = refine_revolute_marker(fit.model, R[inl], p[inl], side, normal_axis)
     except (np.linalg.LinAlgError, ValueError):
         return None
+    # keep the per-frame marker model only where it explains the residuals better than the
+    # isotropic one with its line-of-sight ratio (both at their own estimates, -2 log L)
+    ratio = fit.extra.get('line_of_sight_noise_ratio', ray_ratio)
+    iso = float(fit.chi2[inl].sum() + inl.sum() * (
+        6.0 * np.log(2.0 * np.pi * fit.sigma_position * fit.sigma_rotation)
+        + 2.0 * np.log(ratio)))
+    if not res['neg2_log_likelihood'] < iso:
+        return None
     m = res['model']
     if not np.all(np.isfinite(np.concatenate([m.axis_in_a, m.axis_in_b, m.point_in_a,
                                               m.point_in_b]))):
@@ -370,7 +400,9 @@ def _marker_refit(fit: JointFit, Rc: np.ndarray, pc: np.ndarray, ray_ratio: floa
     new.extra.update({k: v for k, v in fit.extra.items() if k not in new.extra})
     new.extra.update({'marker_side': float(side), 'marker_side_estimated': estimated,
                       'corner_noise_normalised': res['sigma_n'],
-                      'isotropic_model': fit.model})
+                      'isotropic_model': fit.model,
+                      'neg2_log_likelihood': {'marker': res['neg2_log_likelihood'],
+                                              'isotropic': iso}})
     return new, res, (R, p)
 
 
