@@ -224,7 +224,7 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
         differences when they are noise-dominated, else 1) and whiten the position residuals
         of every type with it; ``sigma_position`` is then the noise across the line of sight.
     :param marker_weights: when the selected joint is revolute and the track is a marker seen
-        by a camera (``flip_repair`` on, no ``pose_candidates``, noise estimated, positions at
+        by a camera (``flip_repair`` and ``camera_noise`` on, noise estimated, positions at
         least :data:`joint_estimator.marker_noise.MIN_RAY_RATIO` times noisier along the line
         of sight), refit it by maximum likelihood with each frame's own marker-pose
         information (:func:`joint_estimator.marker_noise.refine_revolute_marker`: depth and
@@ -238,7 +238,8 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
         stamps, non-positive sigma), or no candidate type could be fitted (the message lists
         why).
     """
-    for name, v in (('sigma_position', sigma_position), ('sigma_rotation', sigma_rotation)):
+    for name, v in (('sigma_position', sigma_position), ('sigma_rotation', sigma_rotation),
+                    ('marker_side', marker_side)):
         if v is not None and not (np.isfinite(v) and v > 0):
             raise ValueError(f'{name} must be positive and finite (or None to estimate it), '
                              f'got {v}')
@@ -332,7 +333,7 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
     result.best = min(result.candidates.values(), key=lambda f: f.score)
     marker = None
     b = result.best
-    if (marker_weights and robust and pose_candidates is None and flip_repair
+    if (marker_weights and robust and camera_noise and flip_repair
             and sigma_position is None and b.joint_type == JointType.REVOLUTE
             and (ray_ratio >= MIN_RAY_RATIO or marker_side is not None)):
         marker = _marker_refit(b, Rc, pc, ray_ratio, marker_side, marker_normal_axis,
