@@ -16,6 +16,12 @@ object, the tracker's own CPU and ADD-S [mm] of the published pose against the t
 without a published pose are counted. The first ``--skip`` clouds (start-up: the hints are
 verified, numba and caches warm up) are left out of the CPU figures, not of the accuracy.
 
+Peer, in the same run on the same clouds (scene by scene, the peer first): the node with
+main's tracking ICP (Open3D's ``registration_icp``: :func:`open3d_track_icp`) and main's crop of
+``objects/<name>/cloud`` (the whole cloud). Goals: our CPU per cloud below the peer's, our ADD-S
+p95 no worse than the peer's (+0.05 mm), no published pose beyond 5 mm, and 50 ms per cloud at
+p95 (10 Hz on 2 cores beside the stereo node and the camera).
+
 Usage::
 
     ROS_DOMAIN_ID=57 python bench/localizer_graph_cpu.py [--scenes revolute_pair primitives]
@@ -49,6 +55,7 @@ def _graph_env() -> Dict[str, str]:
     return dict(spec.env)
 
 
+PEER_LABEL = 'peer: main (Open3D ICP, whole-cloud crop)'
 CACHE = Path(os.environ.get('LOCALIZER_GRAPH_CACHE', '/tmp/localizer_graph_cpu_cache'))
 
 
@@ -98,8 +105,55 @@ def stereo_clouds(scene: str, frames: List[int]) -> List[Dict[str, Any]]:
     return out
 
 
-def run_scene(scene: str, n_frames: int, skip: int) -> Dict[str, Any]:
-    """Feed the scene's clouds to an in-process localiser node (rclpy initialised)."""
+def open3d_track_icp(model, near_points, start, settings):
+    """The peer: main's tracking ICP before this branch (Open3D's ``registration_icp``, Tukey
+    point-to-plane, the same two stages and stopping criteria)."""
+    import open3d as o3d
+
+    from object_localizer.tracking import _visible_target
+    reg = o3d.pipelines.registration
+    s = settings
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near_points))
+    if s.scene_voxel > 0:
+        src = src.voxel_down_sample(s.scene_voxel)
+    if len(src.points) > s.max_icp_points:
+        step = len(src.points) / s.max_icp_points
+        src = src.select_by_index(np.floor(np.arange(s.max_icp_points) * step).astype(int)
+                                  .tolist())
+    pose = np.asarray(start, dtype=float).copy()
+    criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, s.icp_iterations)
+    for scale, reach in ((3.0 * s.loss_scale, 2.0 * s.max_distance),
+                         (s.loss_scale, s.max_distance)):
+        P, N = _visible_target(model, pose)
+        if len(P) < 3 or len(src.points) < 3:
+            break
+        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+        target.normals = o3d.utility.Vector3dVector(N)
+        est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=scale))
+        res = reg.registration_icp(src, target, reach, np.eye(4), est, criteria)
+        pose = np.linalg.solve(np.asarray(res.transformation), pose)
+    return pose
+
+
+def _all_finite(self, pose, model_points, margin=0.0):
+    """The peer's crop for objects/<name>/cloud: the whole cloud."""
+    return self.points[np.all(np.isfinite(self.points), axis=1)].astype(np.float64)
+
+
+def run_scene(scene: str, n_frames: int, skip: int, peer: bool = False) -> Dict[str, Any]:
+    """Feed the scene's clouds to an in-process localiser node (rclpy initialised); ``peer``:
+    with main's tracking ICP and cloud crop (:func:`open3d_track_icp`)."""
+    import object_localizer.tracking as tracking
+    saved = tracking.track_icp, tracking.SceneCloud.around_box
+    if peer:
+        tracking.track_icp, tracking.SceneCloud.around_box = open3d_track_icp, _all_finite
+    try:
+        return _run_scene(scene, n_frames, skip)
+    finally:
+        tracking.track_icp, tracking.SceneCloud.around_box = saved
+
+
+def _run_scene(scene: str, n_frames: int, skip: int) -> Dict[str, Any]:
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import PointCloud2
 
@@ -174,6 +228,18 @@ def run_scene(scene: str, n_frames: int, skip: int) -> Dict[str, Any]:
             'data_seconds': t_data}
 
 
+def print_run(scene: str, label: str, r: Dict[str, Any]) -> None:
+    """One line per scene and object: CPU per cloud, ADD-S, frames without a pose."""
+    c = r['cpu_ms_per_cloud']
+    print(f"{scene} [{label}]: CPU ms/cloud median {c['median']:.1f} p95 {c['p95']:.1f} max "
+          f"{c['max']:.1f}; load {r['load_average_1min']['end']:.2f}")
+    for name, o in r['objects'].items():
+        a, t = o['add_s_mm'], o['tracker_cpu_ms']
+        print(f"   {name}: ADD-S mm median {a['median']:.2f} p95 {a['p95']:.2f} max "
+              f"{a['max']:.2f}; no pose {o['frames_without_pose']}; tracker CPU ms median "
+              f"{t['median']:.1f} p95 {t['p95']:.1f} max {t['max']:.1f}; {o['states']}")
+
+
 def main(argv=None) -> int:
     env = _graph_env()
     if any(os.environ.get(k) != v for k, v in env.items()):
@@ -183,7 +249,9 @@ def main(argv=None) -> int:
                         default=['revolute_pair', 'primitives', 'peg_in_hole'])
     parser.add_argument('--frames', type=int, default=80, help='camera frames per scene')
     parser.add_argument('--skip', type=int, default=3, help='start-up clouds left out of CPU')
-    parser.add_argument('--label', default='current', help='name of this configuration')
+    parser.add_argument('--label', default='ours', help='name of this configuration')
+    parser.add_argument('--no-peer', dest='peer', action='store_false',
+                        help='skip the peer (main\'s Open3D tracking ICP and whole-cloud crop)')
     parser.add_argument('--update', action='store_true',
                         help='keep the other labels of the existing results file')
     opts = parser.parse_args(argv)
@@ -191,7 +259,11 @@ def main(argv=None) -> int:
     import rclpy
     rclpy.init()
     try:
-        runs = {scene: run_scene(scene, opts.frames, opts.skip) for scene in opts.scenes}
+        runs, peers = {}, {}
+        for scene in opts.scenes:       # the peer first, then ours, scene by scene
+            if opts.peer:
+                peers[scene] = run_scene(scene, opts.frames, opts.skip, peer=True)
+            runs[scene] = run_scene(scene, opts.frames, opts.skip)
     finally:
         rclpy.try_shutdown()
     path = results_dir() / 'localizer_graph_cpu.json'
@@ -199,15 +271,12 @@ def main(argv=None) -> int:
     if opts.update and path.is_file():
         configs = json.loads(path.read_text()).get('configurations', {})
     configs.setdefault(opts.label, {}).update(runs)
-    for scene, r in runs.items():
-        c = r['cpu_ms_per_cloud']
-        print(f"{scene}: CPU ms/cloud median {c['median']:.1f} p95 {c['p95']:.1f} max "
-              f"{c['max']:.1f}; load {r['load_average_1min']['end']:.2f}")
-        for name, o in r['objects'].items():
-            a, t = o['add_s_mm'], o['tracker_cpu_ms']
-            print(f"   {name}: ADD-S mm median {a['median']:.2f} p95 {a['p95']:.2f} max "
-                  f"{a['max']:.2f}; no pose {o['frames_without_pose']}; tracker CPU ms median "
-                  f"{t['median']:.1f} p95 {t['p95']:.1f} max {t['max']:.1f}; {o['states']}")
+    if peers:
+        configs.setdefault(PEER_LABEL, {}).update(peers)
+    for scene in runs:
+        for label, r in ((PEER_LABEL, peers.get(scene)), (opts.label, runs[scene])):
+            if r is not None:
+                print_run(scene, label, r)
     goals = []
     cur = configs.get(opts.label, {})
     # 10 Hz on 2 cores beside the stereo node (~35-40 ms/frame) and the camera: the localiser
@@ -219,6 +288,17 @@ def main(argv=None) -> int:
             for name, o in cur[scene]['objects'].items():
                 goals.append(goal(f'{scene}_{name}_poses_over_5mm', 0, '==',
                                   o['poses_over_5mm']))
+    peer = configs.get(PEER_LABEL, {})
+    for scene in ('revolute_pair', 'primitives'):
+        if scene in cur and scene in peer:
+            goals.append(goal(f'{scene}_localizer_cpu_ms_per_cloud_median_ratio_vs_peer', 1.0,
+                              '<', cur[scene]['cpu_ms_per_cloud']['median']
+                              / peer[scene]['cpu_ms_per_cloud']['median']))
+            for name, o in cur[scene]['objects'].items():
+                # accuracy no worse than the peer's on the same clouds (0.05 mm: noise)
+                goals.append(goal(f'{scene}_{name}_add_s_p95_mm_minus_peer', 0.05, '<=',
+                                  o['add_s_mm']['p95']
+                                  - peer[scene]['objects'][name]['add_s_mm']['p95']))
     write_report('localizer_graph_cpu', goals, configurations=configs,
                  skip_clouds=opts.skip, environment=env,
                  timing='process CPU time of ObjectLocalizerNode._process per cloud (the '

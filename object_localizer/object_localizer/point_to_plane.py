@@ -7,7 +7,8 @@ small problems (a few thousand scene points against a few thousand model samples
 * correspondences: for every source point the nearest target point within ``reach`` (exact:
   two uniform grids of the target are built once per call; the fine one's 3x3x3 cells around
   the point settle points on the surface, the coarse one is searched in shells of cells until
-  no nearer point can exist), instead of a KD-tree search per point;
+  no nearer point can exist; a point found farther than ``reach`` is searched again only once
+  it has moved enough to come within it), instead of a KD-tree search per point;
 * one Gauss-Newton step per iteration: residual ``r = (p - q) . n_q``, Jacobian
   ``[p x n_q, n_q]``, Tukey weight ``(1 - (r / k)^2)^2`` for ``|r| <= k`` (else 0), the 6x6
   normal equations solved and the step applied as ``Rz(c) Ry(b) Rx(a)`` with its translation;
@@ -103,19 +104,36 @@ def _nearest(q0, q1, q2, P, lo, dims, start, order, cell, reach,
 
 
 @numba.njit(cache=True)
-def _correspond(S, P, fine, coarse, reach, idx):  # pragma: no cover - numba
+def _correspond(S, P, fine, coarse, reach, idx, far, moved):  # pragma: no cover - numba
     """Nearest target point within ``reach`` of every source point: in the fine grid's
     3x3x3 cells around the point when that settles it (points on the surface), else in the
-    coarse grid (points farther away); fitness, inlier RMS, count."""
+    coarse grid (points farther away); fitness, inlier RMS, count.
+
+    ``far[i]``: a lower bound of point i's distance to the target when last searched (0:
+    unknown), ``moved[i]``: how far it has moved since. A point still farther than ``reach``
+    by that bound is not searched (no correspondence, exactly); the coarse search looks
+    ``reach`` beyond ``reach`` to bound the distance of the points it does not match."""
     lo, dims, start, order, cell = fine
     clo, cdims, cstart, corder, ccell = coarse
     count = 0
     sq = 0.0
     for i in range(S.shape[0]):
+        if far[i] - moved[i] > reach:
+            idx[i] = -1
+            continue
         j, d2 = _nearest(S[i, 0], S[i, 1], S[i, 2], P, lo, dims, start, order, cell, reach, 1)
         if j == -2:
             j, d2 = _nearest(S[i, 0], S[i, 1], S[i, 2], P, clo, cdims, cstart, corder, ccell,
-                             reach, 1 << 30)
+                             2.0 * reach, 1 << 30)
+        if j >= 0 and d2 > reach * reach:
+            far[i] = np.sqrt(d2)          # within 2 reach: its distance
+            moved[i] = 0.0
+            j = -1
+        elif j < 0:
+            far[i] = 2.0 * reach          # beyond 2 reach
+            moved[i] = 0.0
+        else:
+            far[i] = 0.0
         idx[i] = j
         if j >= 0:
             count += 1
@@ -190,7 +208,9 @@ def _icp(S0, P, N, fine_cell, cell, reach, k, max_iterations, tolerance,
     before = np.full(n, -2, np.int64)      # the correspondences two iterations back
     last = np.full(n, -2, np.int64)
     T = np.eye(4)
-    fitness, rmse, count = _correspond(S, P, fine, coarse, reach, idx)
+    far = np.zeros(n)
+    moved = np.zeros(n)
+    fitness, rmse, count = _correspond(S, P, fine, coarse, reach, idx, far, moved)
     iterations = 0
     J = np.empty(6)
     for _ in range(max_iterations):
@@ -231,10 +251,13 @@ def _icp(S0, P, N, fine_cell, cell, reach, k, max_iterations, tolerance,
             S[i, 0] = U[0, 0] * px + U[0, 1] * py + U[0, 2] * pz + U[0, 3]
             S[i, 1] = U[1, 0] * px + U[1, 1] * py + U[1, 2] * pz + U[1, 3]
             S[i, 2] = U[2, 0] * px + U[2, 1] * py + U[2, 2] * pz + U[2, 3]
+            if far[i] > 0.0:
+                moved[i] += np.sqrt((S[i, 0] - px) ** 2 + (S[i, 1] - py) ** 2
+                                    + (S[i, 2] - pz) ** 2)
         iterations += 1
         before[:] = last
         last[:] = idx
-        f2, r2, count = _correspond(S, P, fine, coarse, reach, idx)
+        f2, r2, count = _correspond(S, P, fine, coarse, reach, idx, far, moved)
         converged = abs(f2 - fitness) < tolerance and abs(r2 - rmse) < tolerance
         # the same correspondences as two iterations back: a two-cycle (the pose steps back
         # and forth between two states a few tens of micrometres apart); more iterations

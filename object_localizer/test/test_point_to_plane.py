@@ -35,7 +35,8 @@ def test_correspondences_are_the_exact_nearest_within_reach():
         fine = pp._build_grid(P, fine_cell) + (fine_cell,)
         coarse = pp._build_grid(P, cell) + (cell,)
         idx = np.empty(len(Q), np.int64)
-        fitness, rmse, count = pp._correspond(Q, P, fine, coarse, reach, idx)
+        far, moved = np.zeros(len(Q)), np.zeros(len(Q))
+        fitness, rmse, count = pp._correspond(Q, P, fine, coarse, reach, idx, far, moved)
         d, j = cKDTree(P).query(Q, distance_upper_bound=reach)
         inside = np.isfinite(d)
         assert np.array_equal(idx >= 0, inside)
@@ -45,6 +46,19 @@ def test_correspondences_are_the_exact_nearest_within_reach():
         assert count == int(inside.sum())
         assert fitness == pytest.approx(inside.mean())
         assert rmse == pytest.approx(np.sqrt(np.mean(d[inside] ** 2)))
+        # the distances it keeps of the points beyond reach are lower bounds
+        d2 = cKDTree(P).query(Q)[0]
+        assert np.all(far[~inside] <= d2[~inside] + 1e-12)
+        assert np.all(far[~inside] > reach)
+        # points that moved less than their margin are not searched again, and stay unmatched;
+        # a point moved onto the surface is found again
+        moved[:] = 0.0
+        Q2 = Q.copy()
+        out = np.flatnonzero(~inside)
+        Q2[out[0]] = P[0]
+        moved[out[0]] = far[out[0]]
+        pp._correspond(Q2, P, fine, coarse, reach, idx, far, moved)
+        assert idx[out[0]] >= 0 and np.all(idx[out[1:]] == -1)
 
 
 def test_recovers_a_small_motion_and_matches_open3d():
