@@ -251,7 +251,7 @@ def main(argv=None) -> int:
     parser.add_argument('--skip', type=int, default=3, help='start-up clouds left out of CPU')
     parser.add_argument('--label', default='ours', help='name of this configuration')
     parser.add_argument('--no-peer', dest='peer', action='store_false',
-                        help='skip the peer (the Open3D tracking ICP and whole-cloud crop of main)')
+                        help='skip the peer (the Open3D tracking ICP, whole-cloud crop of main)')
     parser.add_argument('--update', action='store_true',
                         help='keep the other labels of the existing results file')
     opts = parser.parse_args(argv)
