@@ -28,9 +28,11 @@ Stages (each hypothesis keeps the figures of every stage, see :class:`Hypothesis
 3. **Refinement** -- the ``max_refined`` best go through point-to-plane ICP with a Tukey
    M-estimator annealed from the PPF step to the stereo noise, using only the model samples
    the camera sees (not hidden behind observed surfaces); the best ``max_slide`` are then
-   searched along the model's principal axes by the visibility score (ICP cannot slide a long
-   prism whose ends are far off) and refined again. Final verification at the stereo depth
-   tolerance (``fine_tolerance``); the list is sorted by that score.
+   searched along the model's principal axes by the visibility score plus the scene side of
+   the fit (ICP cannot slide a long prism whose ends are far off) and refined again. Final
+   verification at the stereo depth tolerance (``fine_tolerance``) and the share of the scene
+   samples next to the model that it explains (``Hypothesis.explained_fraction``); the list
+   is sorted by ``Hypothesis.rank`` = score + 0.5 x explained fraction.
 
 A caller decides acceptance from ``Hypothesis.score`` (and ``inlier_fraction``,
 ``visibility``): on the synthetic stereo scenes right poses score about 0.45-0.95, poses
@@ -430,7 +432,8 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
     :param rough_tolerance: depth tolerance [m] of the rough verification (default: 1.5 x
         the PPF step, at least 6 mm).
     :param fine_tolerance: depth tolerance [m] of the final verification.
-    :return: hypotheses, best (highest ``score``) first; empty if the rough stage found none.
+    :return: hypotheses, best (highest :attr:`Hypothesis.rank`) first, unrefined ones last;
+        empty if the rough stage found none.
     :raises ValueError: unknown method, unusable scene.
     """
     t0 = time.perf_counter()
