@@ -28,11 +28,9 @@ Stages (each hypothesis keeps the figures of every stage, see :class:`Hypothesis
 3. **Refinement** -- the ``max_refined`` best go through point-to-plane ICP with a Tukey
    M-estimator annealed from the PPF step to the stereo noise, using only the model samples
    the camera sees (not hidden behind observed surfaces); the best ``max_slide`` are then
-   searched along the model's principal axes by the visibility score plus the scene side of
-   the fit (ICP cannot slide a long prism whose ends are far off) and refined again. Final
-   verification at the stereo depth tolerance (``fine_tolerance``) and the share of the scene
-   samples next to the model that it explains (``Hypothesis.explained_fraction``); the list
-   is sorted by ``Hypothesis.rank`` = score + 0.5 x explained fraction.
+   searched along the model's principal axes by the visibility score (ICP cannot slide a long
+   prism whose ends are far off) and refined again. Final verification at the stereo depth
+   tolerance (``fine_tolerance``); the list is sorted by that score.
 
 A caller decides acceptance from ``Hypothesis.score`` (and ``inlier_fraction``,
 ``visibility``): on the synthetic stereo scenes right poses score about 0.45-0.95, poses
@@ -54,7 +52,6 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 import open3d as o3d
-from scipy.spatial import cKDTree
 
 from object_localizer.localization import (fpfh_features, match_features_ransac,
                                            ModelTemplate, prepare_model, prepare_scene,
@@ -79,10 +76,6 @@ __all__ = [
 
 #: Rough methods of :func:`acquire_object`.
 METHODS = ('ppf', 'fpfh')
-#: Weight of :attr:`Hypothesis.explained_fraction` in :attr:`Hypothesis.rank`.
-EXPLAINED_WEIGHT = 0.5
-#: Distance [m] within which a scene sample counts as explained by the posed model.
-EXPLAINED_DISTANCE = 0.003
 
 
 @dataclass
@@ -105,13 +98,6 @@ class AcquisitionModel:
     centroid: np.ndarray
     diameter: float
     axes: np.ndarray = field(default_factory=lambda: np.eye(3))
-    _surface_tree: Optional[cKDTree] = field(default=None, repr=False)
-
-    def surface_tree(self) -> cKDTree:
-        """KD-tree of the dense surface samples, model frame (built once)."""
-        if self._surface_tree is None:
-            self._surface_tree = cKDTree(self.surface.points)
-        return self._surface_tree
 
 
 @dataclass
@@ -128,11 +114,6 @@ class Hypothesis:
     :ivar inlier_fraction: ICP inlier fraction of the model's visible samples (NaN unrefined).
     :ivar rmse: ICP inlier RMS point-to-plane residual [m] (NaN unrefined).
     :ivar refined: whether the pose went through ICP.
-    :ivar explained_fraction: share of the scene samples around the pose (a ball of radius
-        diameter/2 + 1 cm about the model centre) within 3 mm of the posed model surface (NaN
-        unrefined): the scene side of the fit, which the model-centric visibility score does
-        not see (a long bar slid along its axis into an occluder leaves observed bar
-        unexplained at its free end).
     """
 
     pose: np.ndarray
@@ -144,14 +125,6 @@ class Hypothesis:
     inlier_fraction: float = float('nan')
     rmse: float = float('nan')
     refined: bool = False
-    explained_fraction: float = float('nan')
-
-    @property
-    def rank(self) -> float:
-        """Ranking key of refined hypotheses: ``score + explained_weight * explained_fraction``
-        (``score`` alone when the explained fraction is unknown)."""
-        e = self.explained_fraction
-        return self.score + (EXPLAINED_WEIGHT * e if np.isfinite(e) else 0.0)
 
 
 @dataclass
@@ -339,32 +312,8 @@ def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
     return pose, float(ev.fitness), float(ev.inlier_rmse)
 
 
-def _explained_fraction(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
-                        near: float = 0.01) -> float:
-    """Share of the scene samples near the posed model that it explains: of the scene points
-    (3 mm voxels) within ``diameter/2 + near`` of the model centre and within ``near`` [m] of
-    the posed model surface, those within :data:`EXPLAINED_DISTANCE` of it (NaN if none is
-    near).
-
-    The scene side of the fit: a long bar slid along its axis into an occluder, or a block
-    turned so that its slot no longer matches the observed one, leaves observed surface
-    next to the model unexplained, which the model-centric visibility score cannot see.
-    """
-    P = np.asarray(scene.downsampled(0.003).points)
-    R, t = pose[:3, :3], pose[:3, 3]
-    c = R @ model.centroid + t
-    r = 0.5 * model.diameter + near
-    P = P[np.sum((P - c) ** 2, axis=1) <= r * r]
-    if len(P) == 0:
-        return float('nan')
-    d, _ = model.surface_tree().query((P - t) @ R, distance_upper_bound=near)
-    n_near = int(np.sum(d <= near))
-    return float(np.sum(d <= EXPLAINED_DISTANCE)) / n_near if n_near else float('nan')
-
-
 def _slide_search(model: AcquisitionModel, pose: np.ndarray, observed: ObservedDepth,
-                  tolerance: float,
-                  scene: Optional[AcquisitionScene] = None) -> Tuple[np.ndarray, bool]:
+                  tolerance: float) -> Tuple[np.ndarray, bool]:
     """Pattern search of the pose's translation along the model's principal axes (steps of
     diam/4 halved down to 4 mm), keeping moves that raise the combined visibility score by
     more than 0.01 (the score's resolution on coarse pixels); ICP then does the fine part.
@@ -373,18 +322,11 @@ def _slide_search(model: AcquisitionModel, pose: np.ndarray, observed: ObservedD
     should be (no correspondence reaches them); the rendered silhouette and the free-space
     violations of the visibility score do see the ends.
 
-    With ``scene``, the objective adds the scene side of the fit
-    (:data:`EXPLAINED_WEIGHT` x :func:`_explained_fraction`, as :attr:`Hypothesis.rank`).
-
     :return: the pose and whether it moved.
     """
     def score(T: np.ndarray) -> float:
-        v = score_pose_visibility(model.surface, T, observed,
-                                  inlier_threshold=tolerance).combined
-        if scene is not None:
-            e = _explained_fraction(model, scene, T)
-            v += EXPLAINED_WEIGHT * e if np.isfinite(e) else 0.0
-        return v
+        return score_pose_visibility(model.surface, T, observed,
+                                     inlier_threshold=tolerance).combined
     best = score(pose)
     moved = False
     for axis in model.axes:
@@ -432,8 +374,7 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
     :param rough_tolerance: depth tolerance [m] of the rough verification (default: 1.5 x
         the PPF step, at least 6 mm).
     :param fine_tolerance: depth tolerance [m] of the final verification.
-    :return: hypotheses, best (highest :attr:`Hypothesis.rank`) first, unrefined ones last;
-        empty if the rough stage found none.
+    :return: hypotheses, best (highest ``score``) first; empty if the rough stage found none.
     :raises ValueError: unknown method, unusable scene.
     """
     t0 = time.perf_counter()
@@ -463,30 +404,24 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         if refined and time.perf_counter() - t0 > time_budget_s:
             break
         tried += 1
-        refined.append(_refined_hypothesis(model, scene, h, _refine(model, scene, h.pose),
-                                           observed, fine_tolerance))
+        pose, inliers, rmse = _refine(model, scene, h.pose)
+        vis = score_pose_visibility(model.surface, pose, observed,
+                                    inlier_threshold=fine_tolerance)
+        refined.append(Hypothesis(pose, vis.combined, method, h.rough_score,
+                                  h.rough_visibility, vis, inliers, rmse, True))
     rest = hyps[tried:]
-    refined.sort(key=lambda h: (h.rank, h.inlier_fraction), reverse=True)
+    refined.sort(key=lambda h: (h.score, h.inlier_fraction), reverse=True)
     for i, h in enumerate(refined[:max_slide]):
-        slid, moved = _slide_search(model, h.pose, observed, fine_tolerance, scene)
+        slid, moved = _slide_search(model, h.pose, observed, fine_tolerance)
         if not moved:
             continue
-        g = _refined_hypothesis(model, scene, h, _refine(model, scene, slid, wide=False),
-                                observed, fine_tolerance)
-        if g.rank > h.rank:
-            refined[i] = g
-    refined.sort(key=lambda h: (h.rank, h.inlier_fraction), reverse=True)
+        pose, inliers, rmse = _refine(model, scene, slid, wide=False)
+        vis = score_pose_visibility(model.surface, pose, observed,
+                                    inlier_threshold=fine_tolerance)
+        if vis.combined > h.score:
+            refined[i] = Hypothesis(pose, vis.combined, method, h.rough_score,
+                                    h.rough_visibility, vis, inliers, rmse, True)
+    refined.sort(key=lambda h: (h.score, h.inlier_fraction), reverse=True)
     for h in rest:
         h.score = 0.0          # unrefined: not a usable pose, kept for diagnosis
     return refined + rest
-
-
-def _refined_hypothesis(model: AcquisitionModel, scene: AcquisitionScene, rough: Hypothesis,
-                        icp: Tuple[np.ndarray, float, float], observed: ObservedDepth,
-                        tolerance: float) -> Hypothesis:
-    """The refined hypothesis of ``rough`` from an ICP result (pose, inliers, rmse): final
-    visibility at ``tolerance`` [m] and the explained fraction."""
-    pose, inliers, rmse = icp
-    vis = score_pose_visibility(model.surface, pose, observed, inlier_threshold=tolerance)
-    return Hypothesis(pose, vis.combined, rough.method, rough.rough_score, rough.rough_visibility,
-                      vis, inliers, rmse, True, _explained_fraction(model, scene, pose))
