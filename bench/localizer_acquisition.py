@@ -273,18 +273,23 @@ def timing_only(args, trials, models):
     rng = np.random.default_rng(0)
     pick = rng.choice(len(trials), size=min(args.timing_only, len(trials)), replace=False)
     timing = dict(data.get('timing_exclusive_lock') or {})
+    timing['load_average_before'] = list(os.getloadavg())
     for method in [m for m in args.methods if m in data['summary']]:
         _, _, _, name, pts, camera, _ = trials[pick[0]]
         run_method(method, models[name], pts, camera, 0)       # warm-up (numba cache load)
-        times = []
+        times, cpu = [], []
         for i in pick:
             _, _, _, name, pts, camera, _ = trials[i]
+            c0 = time.process_time()
             times.append(run_method(method, models[name], pts, camera, int(i))[1])
-        timing[method] = stats(times) | {'n': len(times)}
+            cpu.append(time.process_time() - c0)
+        # CPU time of the process (all its threads: numba voting runs on both cores)
+        timing[method] = stats(times) | {'n': len(times), 'cpu_s': stats(cpu)}
         print(method, timing[method], flush=True)
     timing['load_average_after'] = list(os.getloadavg())
-    timing['note'] = ('re-timed under the exclusive CPU lock on a random subset of the same '
-                      'trials (numba kernels compiled before timing)')
+    timing['note'] = ('re-timed on a random subset of the same trials (numba kernels compiled '
+                      'before timing), under the exclusive CPU lock (flock -x '
+                      '/work/coord/cpu.lock) when the machine has one; see the load averages')
 
     class A:
         pass
