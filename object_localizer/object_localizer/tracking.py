@@ -17,7 +17,12 @@ Per cloud and object (:meth:`ObjectTracker.update`):
    clearly behind it is a free-space violation (the sensor sees through where the object would
    be); no observation counts as missing. From these: the inlier fraction, the RMS residual of
    the inliers (the visible-surface residual), the free-space violation fraction, and the mean
-   displacement of the model points from the prediction. The pose passes only if all of them
+   displacement of the model points from the prediction. Then the silhouette: an object of
+   its own makes a depth edge along its outline (the observed depth just outside jumps behind
+   it), a pose sunk into a larger surface does not -- every visible sample is an inlier, but
+   the observed surface goes on past the outline (a box face inside a table top, a wall, the
+   flat surface a stereo matcher makes at the limit of its disparity band); the share of the
+   outline with an edge must reach ``min_edge_fraction``. The pose passes only if all of them
    pass their thresholds. A pose that fails is never returned as a pose.
 4. **States.** ``ACQUIRING`` (no pose yet: the global acquisition runs on the whole cloud),
    ``TRACKING``, ``LOST`` (the last pose failed: the next cloud is searched globally, from
@@ -93,6 +98,15 @@ class TrackerSettings:
         measured reliably by stereo, and are often hidden from the second camera).
     :ivar min_visible_samples: a pose whose expected-visible samples (after occlusion) are fewer
         cannot be verified and is not published.
+    :ivar min_edge_fraction: smallest share of the model's judged silhouette where the observed
+        depth just outside jumps behind the model (or is missing): a model whose visible
+        surface lies inside a larger observed surface (a face sunk into a table top, a wall,
+        the flat band-limit surface of a stereo matcher, a bigger part) explains every visible
+        sample but has no silhouette edges; such a pose is rejected
+        (:func:`object_localizer.verification.silhouette_edges`).
+    :ivar edge_threshold: depth jump [m] that counts as a silhouette edge.
+    :ivar min_edge_samples: fewer judged silhouette pixels (the rest occluded) leave the edge
+        test undecided: it neither passes nor fails the pose.
     :ivar max_penetration: a pose that puts more than 10 % of the model's volume deeper than
         this [m] inside another object's verified pose is rejected (physically impossible; the
         typical wrong pose of a part lying on a bigger one).
@@ -118,6 +132,9 @@ class TrackerSettings:
     max_visible_residual: float = 0.0015
     max_free_space_fraction: float = 0.15
     max_prediction_error: float = 0.02
+    min_edge_fraction: float = 0.25
+    edge_threshold: float = 0.01
+    min_edge_samples: int = 12
     prediction_horizon: float = 0.25
     stereo_baseline: float = 0.1
     min_view_cos: float = 0.3
@@ -292,7 +309,10 @@ class PoseQuality:
     """Result of :func:`check_pose` (see the module docstring).
 
     :ivar quality: summary in [0, 1]: the inlier fraction, reduced linearly by the residual, the
-        free-space violations and the prediction error relative to their limits.
+        free-space violations and the prediction error relative to their limits, and scaled by
+        the silhouette edge support relative to twice its limit (capped at 1).
+    :ivar edge_fraction: silhouette edge support in [0, 1] (NaN: too few silhouette pixels
+        could be judged); see ``TrackerSettings.min_edge_fraction``.
     :ivar passed: every check passed; ``reason`` names the first failed one.
     """
 
@@ -302,6 +322,7 @@ class PoseQuality:
     prediction_error: float = 0.0
     visible_samples: int = 0
     penetration: float = 0.0
+    edge_fraction: float = float('nan')
     quality: float = 0.0
     passed: bool = False
     reason: str = ''
@@ -325,6 +346,50 @@ def _pixels(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[int, 
     v = np.floor((points[:, 1] / points[:, 2] - lo[1]) / pixel).astype(np.int64)
     ok = (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
     return v * shape[1] + u, ok
+
+
+#: silhouette pixels between the model's outline and the outside pixel judged by the edge test
+EDGE_GAP = 2
+
+
+def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
+                             pixel: float, settings: TrackerSettings) -> float:
+    """Share of the model's silhouette (every sample facing the sensor, at ``pose``) where the
+    observed depth ``EDGE_GAP`` pixels outside jumps behind it by more than
+    ``settings.edge_threshold`` or is missing (:func:`~object_localizer.verification.
+    silhouette_edges`), on a virtual image of ``pixel`` [normalised image units] over the
+    silhouette; NaN when fewer than ``settings.min_edge_samples`` pixels could be judged.
+
+    :param cone_points: (M, 3) scene points [m] on the rays through the object.
+    """
+    from scipy.ndimage import binary_closing
+
+    from object_localizer.verification import silhouette_edges
+
+    R, t = pose[:3, :3], pose[:3, 3]
+    P = model.points @ R.T + t
+    N = model.normals @ R.T
+    P = P[(np.einsum('ij,ij->i', N, P) < 0) & (P[:, 2] > 1e-6)]
+    if len(P) < 3:
+        return float('nan')
+    a = P[:, :2] / P[:, 2:3]
+    margin = (EDGE_GAP + 2) * pixel
+    lo = a.min(axis=0) - margin
+    hi = a.max(axis=0) + margin
+    shape = (int((hi[1] - lo[1]) / pixel) + 1, int((hi[0] - lo[0]) / pixel) + 1)
+    if shape[0] * shape[1] > 4_000_000:
+        return float('nan')
+    sil = _range_image(P, pixel, lo, shape).reshape(shape)
+    mask = np.isfinite(sil)
+    holes = binary_closing(mask, np.ones((3, 3), bool)) & ~mask
+    sil[holes] = np.nanmax(sil)          # samples sparser than pixels: no holes in the outline
+    ca = cone_points[:, :2] / cone_points[:, 2:3]
+    inside = np.all((ca >= lo) & (ca <= hi), axis=1)
+    observed = _range_image(cone_points[inside], pixel, lo, shape).reshape(shape)
+    sup, cont = silhouette_edges(sil, observed, settings.edge_threshold, EDGE_GAP)
+    if sup + cont < settings.min_edge_samples:
+        return float('nan')
+    return sup / (sup + cont)
 
 
 def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
@@ -410,6 +475,11 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
          f'{1e3 * q.prediction_error:.1f} mm from the prediction > '
          f'{1e3 * s.max_prediction_error:.1f} mm'),
     ]
+    q.edge_fraction = silhouette_edge_fraction(model, pose, cone_points, pixel, s)
+    checks.append((not q.edge_fraction < s.min_edge_fraction,
+                   f'silhouette edge support {q.edge_fraction:.2f} < {s.min_edge_fraction:.2f} '
+                   "(the observed surface goes on past the model's outline: it lies inside a "
+                   'larger surface)'))
     for other, other_pose in others:
         share = penetration(model, pose, other, other_pose, s.max_penetration)
         q.penetration = max(q.penetration, share)
@@ -419,7 +489,9 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
     q.passed = not failed
     q.reason = '; '.join(failed)
     res = q.visible_residual if np.isfinite(q.visible_residual) else s.max_visible_residual
-    q.quality = float(np.clip(q.inlier_fraction
+    edge = 1.0 if not np.isfinite(q.edge_fraction) or s.min_edge_fraction <= 0 else \
+        min(q.edge_fraction / (2.0 * s.min_edge_fraction), 1.0)
+    q.quality = float(np.clip(edge * q.inlier_fraction
                               * (1.0 - min(res / s.max_visible_residual, 1.0) / 2.0)
                               * (1.0 - min(q.free_space_fraction / s.max_free_space_fraction,
                                            1.0) / 2.0)
