@@ -357,35 +357,41 @@ def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points
     """Share of the model's silhouette (every sample facing the sensor, at ``pose``) where the
     observed depth ``EDGE_GAP`` pixels outside jumps behind it by more than
     ``settings.edge_threshold`` or is missing (:func:`~object_localizer.verification.
-    silhouette_edges`), on a virtual image of ``pixel`` [normalised image units] over the
-    silhouette; NaN when fewer than ``settings.min_edge_samples`` pixels could be judged.
+    silhouette_edges`), on a virtual pinhole image of ``pixel`` [normalised image units, i.e.
+    radians] over the silhouette; NaN when fewer than ``settings.min_edge_samples`` pixels
+    could be judged. Model and scene are drawn by the acquisition's verification
+    (``render_model_depth``, ``observe_depth``).
 
     :param cone_points: (M, 3) scene points [m] on the rays through the object.
     """
-    from scipy.ndimage import binary_closing
-
-    from object_localizer.verification import silhouette_edges
+    from object_localizer.verification import observe_depth, PinholeCamera, \
+        render_model_depth, silhouette_edges
 
     R, t = pose[:3, :3], pose[:3, 3]
-    P = model.points @ R.T + t
-    N = model.normals @ R.T
-    P = P[(np.einsum('ij,ij->i', N, P) < 0) & (P[:, 2] > 1e-6)]
-    if len(P) < 3:
+    centres = model.points @ R.T + t
+    front = centres[:, 2] > 1e-6
+    if np.count_nonzero(front) < 3 or len(cone_points) < 3:
         return float('nan')
-    a = P[:, :2] / P[:, 2:3]
+    a = centres[front, :2] / centres[front, 2:3]
     margin = (EDGE_GAP + 2) * pixel
     lo = a.min(axis=0) - margin
     hi = a.max(axis=0) + margin
-    shape = (int((hi[1] - lo[1]) / pixel) + 1, int((hi[0] - lo[0]) / pixel) + 1)
-    if shape[0] * shape[1] > 4_000_000:
+    width, height = int((hi[0] - lo[0]) / pixel) + 1, int((hi[1] - lo[1]) / pixel) + 1
+    if width * height > 4_000_000:
         return float('nan')
-    sil = _range_image(P, pixel, lo, shape).reshape(shape)
+    camera = PinholeCamera(1.0 / pixel, 1.0 / pixel, -lo[0] / pixel - 0.5,
+                           -lo[1] / pixel - 0.5, width, height)
+    sil = render_model_depth(model.points, model.normals, pose, camera, 0.0)
     mask = np.isfinite(sil)
-    holes = binary_closing(mask, np.ones((3, 3), bool)) & ~mask
-    sil[holes] = np.nanmax(sil)          # samples sparser than pixels: no holes in the outline
-    ca = cone_points[:, :2] / cone_points[:, 2:3]
-    inside = np.all((ca >= lo) & (ca <= hi), axis=1)
-    observed = _range_image(cone_points[inside], pixel, lo, shape).reshape(shape)
+    if not mask.any():
+        return float('nan')
+    # samples about as far apart as pixels leave single-pixel holes: fill those with model
+    # pixels on both sides (a hole would read as outline)
+    holes = np.zeros_like(mask)
+    holes[1:-1, :] |= mask[:-2, :] & mask[2:, :]
+    holes[:, 1:-1] |= mask[:, :-2] & mask[:, 2:]
+    sil[holes & ~mask] = np.nanmax(sil)
+    observed = observe_depth(cone_points, camera, stride=1).depth
     sup, cont = silhouette_edges(sil, observed, settings.edge_threshold, EDGE_GAP)
     if sup + cont < settings.min_edge_samples:
         return float('nan')
