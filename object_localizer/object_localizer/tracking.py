@@ -105,6 +105,10 @@ class TrackerSettings:
         sample but has no silhouette edges; such a pose is rejected
         (:func:`object_localizer.verification.silhouette_edges`).
     :ivar edge_threshold: depth jump [m] that counts as a silhouette edge.
+    :ivar edge_gap: distance [m, at the object] from the outline of the observed depth judged
+        by the edge test (at least ``EDGE_GAP`` pixels of the check's image): stereo matching
+        fattens foreground silhouettes by about half its window (3-4 camera pixels, 2-3 mm
+        at 0.5 m with 600 px), and that band must be stepped over.
     :ivar min_edge_samples: fewer judged silhouette pixels (the rest occluded) leave the edge
         test undecided: it neither passes nor fails the pose.
     :ivar max_penetration: a pose that puts more than 10 % of the model's volume deeper than
@@ -134,6 +138,7 @@ class TrackerSettings:
     max_prediction_error: float = 0.02
     min_edge_fraction: float = 0.25
     edge_threshold: float = 0.01
+    edge_gap: float = 0.005
     min_edge_samples: int = 12
     prediction_horizon: float = 0.25
     stereo_baseline: float = 0.1
@@ -348,14 +353,16 @@ def _pixels(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[int, 
     return v * shape[1] + u, ok
 
 
-#: silhouette pixels between the model's outline and the outside pixel judged by the edge test
+#: smallest distance [pixels of the check's image] between the model's outline and the outside
+#: pixel judged by the edge test (see ``TrackerSettings.edge_gap``)
 EDGE_GAP = 2
 
 
 def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
                              pixel: float, settings: TrackerSettings) -> float:
     """Share of the model's silhouette (every sample facing the sensor, at ``pose``) where the
-    observed depth ``EDGE_GAP`` pixels outside jumps behind it by more than
+    observed depth ``settings.edge_gap`` outside (at least ``EDGE_GAP`` pixels) jumps behind
+    it by more than
     ``settings.edge_threshold`` or is missing (:func:`~object_localizer.verification.
     silhouette_edges`), on a virtual pinhole image of ``pixel`` [normalised image units, i.e.
     radians] over the silhouette; NaN when fewer than ``settings.min_edge_samples`` pixels
@@ -373,7 +380,9 @@ def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points
     if np.count_nonzero(front) < 3 or len(cone_points) < 3:
         return float('nan')
     a = centres[front, :2] / centres[front, 2:3]
-    margin = (EDGE_GAP + 2) * pixel
+    depth = float(np.median(centres[front, 2]))
+    gap = max(EDGE_GAP, int(np.ceil(settings.edge_gap / (pixel * depth))))
+    margin = (gap + 2) * pixel
     lo = a.min(axis=0) - margin
     hi = a.max(axis=0) + margin
     width, height = int((hi[0] - lo[0]) / pixel) + 1, int((hi[1] - lo[1]) / pixel) + 1
@@ -392,7 +401,7 @@ def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points
     holes[:, 1:-1] |= mask[:, :-2] & mask[:, 2:]
     sil[holes & ~mask] = np.nanmax(sil)
     observed = observe_depth(cone_points, camera, stride=1).depth
-    sup, cont = silhouette_edges(sil, observed, settings.edge_threshold, EDGE_GAP)
+    sup, cont = silhouette_edges(sil, observed, settings.edge_threshold, gap)
     if sup + cont < settings.min_edge_samples:
         return float('nan')
     return sup / (sup + cont)
