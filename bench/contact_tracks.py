@@ -9,7 +9,9 @@ of 1-3 mm and 1-4 deg, up to ~5 mm / 7 deg).
 
 Methods, in the same run on the same observations:
   * ``recognised_offline``: ``correct_trajectory(recognition=...)`` (the offline command):
-    model selection + Viterbi over the whole track, fallbacks;
+    model selection + Viterbi over the whole track, the safe rule at ambiguous contact
+    changes (only the contacts common to the competing relations enforced), push-out of a
+    penetrating observation before other relations, fallbacks;
   * ``recognised_online``: ``ContactCorrector`` (the node): the same with the online temporal
     model (hysteresis);
   * ``peer_per_frame_detection`` (main): each frame's relation detected with one tolerance

@@ -60,7 +60,8 @@ from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 __all__ = ['ContactCorrectionNode', 'main', 'model_path_problem']
 
 _RECOGNITION_PARAMETERS = ('recognition', 'sigma_translation', 'sigma_rotation',
-                           'search_margin', 'free_dof_penalty', 'switch_cost', 'optimal',
+                           'search_margin', 'free_dof_penalty', 'switch_cost',
+                           'ambiguity_margin', 'optimal',
                            'tolerance', 'penetration_tolerance', 'angle_tolerance',
                            'max_translation', 'max_rotation', 'check_penetration',
                            'element_margin')
@@ -149,6 +150,10 @@ class ContactCorrectionNode(Node):
         self.declare_parameter('switch_cost', 20.0, _float(
             'temporal model: score cost per contact switched on or off between frames',
             0.0, 1000.0))
+        self.declare_parameter('ambiguity_margin', 5.0, _float(
+            'correct_trajectory service (offline Viterbi): at a contact change the evidence '
+            'does not pin down, enforce only the contacts common to both relations when the '
+            'other is within this score margin; 0: off', 0.0, 1000.0))
         self.declare_parameter('element_margin', 1e-6, _float(
             'largest distance [m] of a corrected contact point outside its element (given / '
             'detected relations; recognised ones use the search margin)', 0.0, 0.05))
@@ -260,7 +265,8 @@ class ContactCorrectionNode(Node):
             sigma_rotation=g('sigma_rotation').value,
             search_margin=margin if margin > 0 else None,
             free_dof_penalty=g('free_dof_penalty').value,
-            switch_cost=g('switch_cost').value)
+            switch_cost=g('switch_cost').value,
+            ambiguity_margin=g('ambiguity_margin').value)
 
     def _relation(self):
         text = str(self.get_parameter('relation').value).strip()

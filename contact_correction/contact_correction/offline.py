@@ -291,6 +291,10 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
                    help='recognition score cost per degree of freedom left free')
     g.add_argument('--switch-cost', type=float, default=20.0,
                    help='temporal model cost per contact switched on or off')
+    g.add_argument('--ambiguity-margin', type=float, default=5.0,
+                   help='at a contact change the evidence does not pin down, enforce only the '
+                        'contacts common to both relations when the other is within this '
+                        'score margin (offline; 0: off)')
     g.add_argument('--tolerance', type=float, default=0.002,
                    help='contact distance of --per-frame-detection [m]')
     g.add_argument('--penetration-tolerance', type=float, default=None,
@@ -311,8 +315,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     ap.add_argument('--figure', type=Path, default=None, help='write a Fig. 9-like PNG')
     args = ap.parse_args(argv)
     for name in ('sigma_translation', 'sigma_rotation_deg', 'search_margin', 'free_dof_penalty',
-                 'switch_cost', 'tolerance', 'penetration_tolerance', 'element_margin',
-                 'max_translation', 'max_rotation_deg', 'residual_tolerance'):
+                 'switch_cost', 'ambiguity_margin', 'tolerance', 'penetration_tolerance',
+                 'element_margin', 'max_translation', 'max_rotation_deg', 'residual_tolerance'):
         v = getattr(args, name)
         if v is not None and (not np.isfinite(v) or v < 0):
             ap.error(f'--{name.replace("_", "-")} must be a finite number >= 0, got {v}')
@@ -368,7 +372,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                            sigma_rotation=float(np.deg2rad(args.sigma_rotation_deg)),
                            search_margin=args.search_margin,
                            free_dof_penalty=args.free_dof_penalty,
-                           switch_cost=args.switch_cost)
+                           switch_cost=args.switch_cost,
+                           ambiguity_margin=args.ambiguity_margin)
     relations = [relation] * len(Tm) if relation is not None else None
     try:
         results = correct_trajectory(moving, fixed, Tm, Tf, relations=relations,

@@ -49,7 +49,7 @@ from .contact_relation import (
 from .polyhedron import Polyhedron, cross3
 
 __all__ = ['RecognitionOptions', 'Hypothesis', 'FrameCandidates', 'RelationRecognizer',
-           'RelationTracker', 'recognise_track', 'group_key']
+           'RelationTracker', 'recognise_track', 'group_key', 'common_state']
 
 GroupKey = Tuple[Hashable, ...]
 State = FrozenSet[GroupKey]
@@ -72,6 +72,13 @@ class RecognitionOptions:
     :ivar angle_tolerance: angular slack of the pool's local tests and of the face-against-face
         grouping [rad]; None = max(0.1, 4 sigma_r).
     :ivar beam: relations kept per frame by the temporal model.
+    :ivar ambiguity_margin: offline safe rule at contact changes: when a relation with fewer
+        constraints than the Viterbi one explains a frame better (chi2 lower by more than
+        ``AMBIGUITY_FIT``) and its min-marginal (least total cost over the whole track of a
+        sequence through it at that frame) is within this margin of the Viterbi path's, only
+        the groups common to both are enforced there (a correction right under either
+        relation: no direction that one of them leaves free is constrained). 0 disables it.
+        The online choice (hysteresis) is not changed.
     """
 
     sigma_translation: float = 0.001
@@ -82,10 +89,12 @@ class RecognitionOptions:
     switch_cost: float = 20.0
     angle_tolerance: Optional[float] = None
     beam: int = 6
+    ambiguity_margin: float = 5.0
 
     def validate(self) -> None:
         """:raises ValueError: on a non-finite or out-of-range value, naming it."""
-        for name in ('sigma_translation', 'sigma_rotation', 'sigma_model', 'switch_cost'):
+        for name in ('sigma_translation', 'sigma_rotation', 'sigma_model', 'switch_cost',
+                     'ambiguity_margin'):
             v = getattr(self, name)
             if not np.isfinite(v) or v < 0:
                 raise ValueError(f'{name} must be a finite number >= 0, got {v}')
@@ -149,8 +158,34 @@ class FrameCandidates:
     best: Optional[Hypothesis] = None
 
     def ranked(self) -> List[Hypothesis]:
-        """Hypotheses, best (lowest score) first."""
-        return sorted(self.hypotheses.values(), key=lambda h: h.score)
+        """Hypotheses, best (lowest score) first (unscored ones last)."""
+        return sorted(self.hypotheses.values(),
+                      key=lambda h: h.score if np.isfinite(h.score) else float('inf'))
+
+    def hypothesis(self, state: State) -> Hypothesis:
+        """The frame's hypothesis for ``state`` (a set of its groups); one not scored in the
+        search is built unscored (``chi2``, ``score`` nan, ``rank`` -1)."""
+        h = self.hypotheses.get(state)
+        if h is not None:
+            return h
+        mask = np.zeros(len(self.pool), dtype=bool)
+        for k in state:
+            mask[self.groups[k]] = True
+        return Hypothesis(state, tuple(p for p, m in zip(self.pool, mask) if m),
+                          float('nan'), -1, float('nan'))
+
+
+#: chi2 by which a relation with fewer constraints must explain a frame better than the chosen
+#: one to make it ambiguous (the data favour it, only the priors do not)
+AMBIGUITY_FIT = 1.0
+
+
+def common_state(states: Sequence[State]) -> State:
+    """The groups common to every state (the relation right under any of them)."""
+    out = frozenset(states[0])
+    for s in states[1:]:
+        out &= s
+    return out
 
 
 def _faces_of_edge(poly: Polyhedron, e: int) -> np.ndarray:
@@ -452,16 +487,41 @@ class RelationTracker:
         return fc.hypotheses[best_state], fc
 
     def backtrack(self) -> List[Hypothesis]:
-        """Least-cost relation sequence over the recorded frames (offline Viterbi)."""
+        """Least-cost relation sequence over the recorded frames (offline Viterbi).
+
+        With ``ambiguity_margin`` > 0, each frame's min-marginals (the least total cost of a
+        sequence through a relation at that frame: forward + backward cost) are computed; the
+        groups common to the Viterbi relation and every relation whose min-marginal is within
+        the margin of it are enforced (at a contact change whose frame the evidence does not
+        pin down, only what holds before and after it)."""
         if not self.history:
             return []
+        sw = self.recognizer.options.switch_cost
+        margin = self.recognizer.options.ambiguity_margin
+        # backward costs over the recorded beams
+        betas: List[Dict[State, float]] = [dict() for _ in self.history]
+        betas[-1] = {s: 0.0 for s in self.history[-1][1]}
+        for k in range(len(self.history) - 2, -1, -1):
+            fc1, table1 = self.history[k + 1]
+            nxt = [(s1, fc1.hypotheses[s1].score + betas[k + 1][s1]) for s1 in table1]
+            betas[k] = {s: min(c + sw * _switches(s, s1) for s1, c in nxt)
+                        for s in self.history[k][1]}
         out: List[Hypothesis] = []
         fc, table = self.history[-1]
         state = min(table, key=lambda s: table[s][0])
-        for fc, table in reversed(self.history):
+        for k in range(len(self.history) - 1, -1, -1):
+            fc, table = self.history[k]
             if state not in table:    # pruned from this frame's beam: take its best
-                state = min(table, key=lambda s: table[s][0])
-            out.append(fc.hypotheses[state])
+                state = min(table, key=lambda s: table[s][0] + betas[k][s])
+            h = fc.hypotheses[state]
+            if margin > 0:
+                mu = {s: table[s][0] + betas[k][s] for s in table}
+                near = [s for s in table if mu[s] <= mu[state] + margin
+                        and fc.hypotheses[s].rank < h.rank
+                        and fc.hypotheses[s].chi2 < h.chi2 - AMBIGUITY_FIT]
+                if near:
+                    h = fc.hypothesis(common_state([state] + near))
+            out.append(h)
             state = table[state][1]
             if state is None:
                 state = frozenset()

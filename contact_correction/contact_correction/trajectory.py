@@ -18,7 +18,7 @@ penetration is not passed through.
 
 from __future__ import annotations
 
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -63,31 +63,14 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
     pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check \
         else float('nan')
     tol = max(kwargs.get('residual_tolerance', 1e-9), 1e-6)
-    order = [chosen] + [h for h in frame.ranked() if h.state != chosen.state and h.pairs]
-    first: Optional[CorrectionResult] = None
-    for k, h in enumerate(order[:1 + MAX_FALLBACKS]):
-        if not h.pairs:
-            if not check or pen <= tol:
-                r = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
-                                     status='no contact (recognised: the observation is '
-                                            'explained best without contact); pose passed '
-                                            'through', penetration_before=pen,
-                                     penetration_after=pen)
-                r.relation_source = 'recognised'
-                return r
-            continue        # free but penetrating: the next relation must push it out
-        r = correct_pose(moving, fixed, T_moving, T_fixed, list(h.pairs), **kwargs)
-        r.relation_source = 'recognised' + (f', fallback {k}' if k else '')
-        if r.corrected:
-            if k:
-                r.status += f' (fallback: relation {k + 1} of the frame; the chosen one: ' \
-                            f'{first.status if first else "free"})'
-            return r
-        first = first or r
-    if check and pen > tol and frame.pool:
-        # last resort: the pairs that penetrate, non-linear step only (any feasible pose);
-        # pairs found penetrating at the attempt's pose are added and the attempt repeated
-        sel = np.zeros(len(frame.pool), dtype=bool)
+
+    def push_out(base: Tuple[ContactPair, ...]) -> Optional[CorrectionResult]:
+        """Non-linear step only (the feasible pose nearest the observation) on ``base`` plus
+        the pool's pairs that penetrate; pairs found penetrating at the attempt's pose are
+        added and the attempt repeated."""
+        if not frame.pool:
+            return None
+        sel = np.array([p in base for p in frame.pool], dtype=bool)
         T_try = np.asarray(T_moving, dtype=float)
         kw = dict(kwargs, optimal=False)
         for _ in range(3):
@@ -102,12 +85,53 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                              [p for p, s in zip(frame.pool, sel) if s], **kw)
             r.relation_source = 'recognised, push-out'
             if r.corrected:
-                r.status += ' (push-out: no recognised relation could be enforced and the ' \
-                            'observation penetrates)'
                 return r
             if r.T_nonlinear is None:
                 break
             T_try = r.T_nonlinear
+        return None
+
+    first: Optional[CorrectionResult] = None
+    if chosen.pairs:
+        r = correct_pose(moving, fixed, T_moving, T_fixed, list(chosen.pairs), **kwargs)
+        r.relation_source = 'recognised'
+        if r.corrected:
+            return r
+        first = r
+    elif not check or pen <= tol:
+        r = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
+                             status='no contact (recognised: the observation is '
+                                    'explained best without contact); pose passed '
+                                    'through', penetration_before=pen,
+                             penetration_after=pen)
+        r.relation_source = 'recognised'
+        return r
+    if check and pen > tol:
+        # the chosen relation (free, or one whose correction leaves penetration) plus only
+        # what penetrates: the smallest change that removes the penetration, rather than
+        # another relation of the frame that may constrain a free direction
+        r = push_out(tuple(chosen.pairs))
+        if r is not None:
+            r.status += (' (push-out: the chosen relation ' + (
+                f'could not be enforced: {first.status}' if first is not None else 'is free')
+                + ' and the observation penetrates)')
+            return r
+    order = [h for h in frame.ranked() if h.state != chosen.state and h.pairs]
+    for k, h in enumerate(order[:MAX_FALLBACKS]):
+        r = correct_pose(moving, fixed, T_moving, T_fixed, list(h.pairs), **kwargs)
+        r.relation_source = f'recognised, fallback {k + 1}'
+        if r.corrected:
+            r.status += f' (fallback: relation {k + 2} of the frame; the chosen one: ' \
+                        f'{first.status if first else "free"})'
+            return r
+        first = first or r
+    if check and pen > tol and chosen.pairs:
+        # last resort: the penetrating pairs alone
+        r = push_out(())
+        if r is not None:
+            r.status += ' (push-out: no recognised relation could be enforced and the ' \
+                        'observation penetrates)'
+            return r
     if first is None:
         first = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
                                  status='no usable relation; pose passed through',

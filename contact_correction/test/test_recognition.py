@@ -187,8 +187,57 @@ def test_penetrating_observation_is_never_passed_through(models):
     # a relation no pose near the observation realises: the vertex on a face far away
     bogus = Hypothesis(frozenset({('bogus',)}), (ContactPair(0, 0, 2, 1),), 0.0, 1, 0.0)
     r = correct_recognised(peg, block, T, I4, bogus, fc, rec.last_guard(), rec.margin)
-    assert r.corrected and 'fallback' in r.relation_source, r.status
+    assert r.corrected and ('fallback' in r.relation_source
+                            or 'push-out' in r.relation_source), r.status
     assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
+
+
+def test_free_choice_on_a_penetrating_observation_is_pushed_out_minimally(models):
+    """The peg flat on hole_block's top, observed 0.5 mm into it (and tilted 0.17 deg) with the
+    free relation chosen: the push-out comes before any other relation of the frame and only
+    lifts the peg onto the top (its horizontal position, free on the top face, kept)."""
+    peg, block = models['peg'], models['hole_block']
+    T = make_transform(rotation_about_axis(np.array([1.0, 0.0, 0.0]), 0.003),
+                       [0.05, 0.004, -0.0005])
+    assert penetration_depth(peg, block, T, I4, 0.002) > 4e-4
+    rec = RelationRecognizer(peg, block, RecognitionOptions(1e-3, np.deg2rad(1.0)))
+    fc = rec.frame(T, I4)
+    free = Hypothesis(frozenset(), (), 0.0, 0, 0.0)
+    r = correct_recognised(peg, block, T, I4, free, fc, rec.last_guard(), rec.margin)
+    assert r.corrected and 'push-out' in r.relation_source, r.status
+    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
+    dt = r.T_moving[:3, 3] - T[:3, 3]
+    assert dt[2] == pytest.approx(5e-4, abs=1e-6)
+    assert np.abs(dt[:2]).max() < 1e-5
+    # every pair enforced is a contact of the true relation (bottom face on the top face)
+    truth = make_transform(np.eye(3), [0.05, 0.004, 0.0])
+    g = evaluate_contacts(peg, block, truth, list(r.pairs))
+    assert np.abs(g.distances).max() < 1e-9
+
+
+def test_ambiguous_contact_change_enforces_only_the_common_contacts(models):
+    """The T-peg held inserted, then pulled up: the first pulled-out observation (1.5 mm up,
+    1.5 times the stated 1 mm noise) fits the walls-only relation better but the shoulders'
+    extra constraints win the score. Offline, only the contacts common to both (the stem
+    walls) are enforced there, so the pull-out direction (free under the true relation) is
+    not changed; without the rule the shoulders are enforced and the peg is pulled 1.5 mm
+    down."""
+    peg, block = models['t_peg'], models['t_slot_block']
+    zs = [0.0] * 8 + [0.0015, 0.004, 0.008, 0.012, 0.016, 0.02]
+    To = np.array([make_transform(np.eye(3), [0.0, 0.0, z]) for z in zs])
+    walls = detect_contact_relation(peg, block, To[10], I4, tolerance=1e-7)
+    for margin, moved in ((RecognitionOptions().ambiguity_margin, False), (0.0, True)):
+        assert margin > 0 or moved
+        opts = RecognitionOptions(1e-3, np.deg2rad(1.0), ambiguity_margin=margin)
+        res = correct_trajectory(peg, block, To, I4, recognition=opts)
+        dz = [r.T_moving[2, 3] - z for r, z in zip(res, zs)]
+        assert np.abs(np.delete(dz, 8)).max() < 1e-9
+        if moved:
+            assert dz[8] == pytest.approx(-1.5e-3, abs=1e-6)
+        else:
+            assert abs(dz[8]) < 1e-9
+            assert equivalent(peg, block, To[8], walls, res[8].pairs)
+        assert all(penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8 for r in res)
 
 
 def test_one_residual_tolerance():

@@ -185,6 +185,13 @@ class JointEstimatorNode(Node):
                         'mode: link B is the camera; two_links: both poses in the camera frame)'))
         self.declare_parameter('marker_normal_axis', 'z', _string(
             "axis of the marker frame that is its normal: 'x', 'y' or 'z' (ArUco: z)"))
+        self.declare_parameter('marker_weights', True, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description='relative mode, estimated noise: refit a revolute joint with each '
+                        "frame's own marker-pose noise (depth, tilt; from the corners' geometry)"))
+        self.declare_parameter('marker_side', 0.0, _float(
+            "the square marker's side [m] for the per-frame noise model; 0: estimated from "
+            "the track", 0.0, 10.0))
         self.declare_parameter('stamp_reset_threshold', 0.5, _float(
             'a stamp this far behind the newest [s] is a source restart: the window is cleared',
             0.0, 1e6))
@@ -292,7 +299,8 @@ class JointEstimatorNode(Node):
             min_translation_range=g('min_translation_range').value, stamps_ns=stamps,
             flip_repair=flip, marker_normal_axis=axis, pose_candidates=candidates,
             # the relative positions of two links are not seen along a camera's line of sight
-            camera_noise=link_poses is None)
+            camera_noise=link_poses is None, marker_weights=g('marker_weights').value,
+            marker_side=g('marker_side').value or None)
 
     def _b_frame(self) -> str:
         return self.get_parameter('link_b_frame').value or self._last_b_frame or 'link_b'

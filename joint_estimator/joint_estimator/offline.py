@@ -259,6 +259,11 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
                     help='do not repair square-marker pose flips with the ambiguity twin')
     ap.add_argument('--marker-normal-axis', choices=sorted(AXIS_INDEX), default='z',
                     help="marker frame axis that is the marker's normal (ArUco: z)")
+    ap.add_argument('--marker-side', type=float, default=None,
+                    help="the square marker's side [m] (per-frame marker noise model; "
+                         'default: estimated from the track)')
+    ap.add_argument('--no-marker-weights', action='store_true',
+                    help="do not refit a revolute joint with each frame's marker-pose noise")
     ap.add_argument('--no-robust', action='store_true', help='do not reject outlier frames')
     ap.add_argument('--no-refine', action='store_true',
                     help="chapter's Eqs. 17-18 only (no maximum-likelihood refinement)")
@@ -281,7 +286,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                                   with_links=True)
         jt = None if args.joint_type == 'auto' else int(JointType[args.joint_type.upper()])
         for name, v in (('--sigma-position', args.sigma_position),
-                        ('--sigma-rotation-deg', args.sigma_rotation_deg)):
+                        ('--sigma-rotation-deg', args.sigma_rotation_deg),
+                        ('--marker-side', args.marker_side)):
             if v is not None and not (np.isfinite(v) and v > 0):
                 raise ValueError(f'{name} must be positive, got {v}')
         axis = AXIS_INDEX[args.marker_normal_axis]
@@ -294,7 +300,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                             else np.deg2rad(args.sigma_rotation_deg)),
             robust=not args.no_robust, refine=not args.no_refine, correction=args.correction,
             stamps_ns=stamps, flip_repair=flip, marker_normal_axis=axis,
-            pose_candidates=candidates, camera_noise=links is None)
+            pose_candidates=candidates, camera_noise=links is None,
+            marker_weights=not args.no_marker_weights, marker_side=args.marker_side)
     except ValueError as exc:
         print(f'estimate_joint: {exc}', file=sys.stderr)
         return 2

@@ -288,9 +288,10 @@ class ObjectLocalizerNode(Node):
             if result.pose is None:
                 continue
             if self.cloud_pubs[name].get_subscription_count() > 0:
-                points = scene.points[np.isfinite(scene.points[:, 2])].astype(float)
+                margin = self.get_parameter('segment_margin').value
+                points = scene.around_box(result.pose, tracker.model.template.points, margin)
                 segment = segment_object_points(points, tracker.model.template, result.pose,
-                                                self.get_parameter('segment_margin').value)
+                                                margin)
                 self.cloud_pubs[name].publish(xyz_to_pointcloud2(segment, msg.header))
             if self.track_pubs[name].get_subscription_count() > 0 and tracker.history:
                 stamps, poses = zip(*tracker.history)

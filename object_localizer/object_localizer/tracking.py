@@ -48,6 +48,7 @@ import numpy as np
 import open3d as o3d
 
 from object_localizer.localization import localize, ModelTemplate, prepare_model, sample_surface
+from object_localizer.point_to_plane import icp_point_to_plane
 from stereo_manip_tools.mesh_io import PolygonMesh
 from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
@@ -73,6 +74,10 @@ class TrackerSettings:
     :ivar max_distance: ICP correspondence radius [m] at the last ICP stage (twice that first).
     :ivar loss_scale: Tukey M-estimator scale k [m] at the last stage (annealed from 3k).
     :ivar icp_iterations: largest number of ICP iterations per stage.
+    :ivar icp_min_step: the last ICP stage also stops when its step turns the scene by less
+        than this [rad] and moves it by less than this [m].
+    :ivar icp_coarse_min_step: the same for the first (coarse, wide) stage, which the last one
+        refines.
     :ivar scene_voxel: voxel size [m] the scene crop is down-sampled to for ICP.
     :ivar max_icp_points: at most this many of those points take part (evenly chosen).
     :ivar inlier_distance: largest distance [m] (along the model normal) of an observed point
@@ -128,6 +133,8 @@ class TrackerSettings:
     max_distance: float = 0.01
     loss_scale: float = 0.0015
     icp_iterations: int = 30
+    icp_min_step: float = 1e-6
+    icp_coarse_min_step: float = 1e-6
     scene_voxel: float = 0.003
     max_icp_points: int = 2500
     inlier_distance: float = 0.003
@@ -307,6 +314,20 @@ class SceneCloud:
             keep = self._front & (np.abs(P[:, 0] - a0 * z) <= rho * z) & \
                 (np.abs(P[:, 1] - b0 * z) <= rho * z)
         return P[keep].astype(np.float64)
+
+    def around_box(self, pose: np.ndarray, model_points: np.ndarray, margin: float = 0.0
+                   ) -> np.ndarray:
+        """Points (M, 3) float64 that may lie in the bounding box of ``model_points`` (model
+        frame [m]) grown by ``margin`` [m] at ``pose`` (4x4 model -> sensor): those on rays
+        through the box's circumscribed sphere (:meth:`cone`; every finite point when the
+        sphere reaches the sensor). A cheap superset for cropping to the box."""
+        lo = np.min(model_points, axis=0) - margin
+        hi = np.max(model_points, axis=0) + margin
+        centre = pose[:3, :3] @ (0.5 * (lo + hi)) + pose[:3, 3]
+        radius = 0.5 * float(np.linalg.norm(hi - lo))
+        if float(centre[2]) <= radius:
+            return self.points[np.all(np.isfinite(self.points), axis=1)].astype(np.float64)
+        return self.cone(centre, radius)
 
 
 @dataclass
@@ -515,41 +536,41 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
     return q
 
 
-def _visible_target(model: TrackingModel, pose: np.ndarray) -> o3d.geometry.PointCloud:
+def _visible_target(model: TrackingModel, pose: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """The model samples (M, 3) [m, sensor frame] facing the sensor at ``pose``, and their unit
+    normals (M, 3)."""
     R, t = pose[:3, :3], pose[:3, 3]
     P = model.points @ R.T + t
     N = model.normals @ R.T
     keep = np.einsum('ij,ij->i', N, -P) > 0
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P[keep]))
-    pcd.normals = o3d.utility.Vector3dVector(N[keep])
-    return pcd
+    return P[keep], N[keep]
 
 
 def track_icp(model: TrackingModel, near_points: np.ndarray, start: np.ndarray,
               settings: TrackerSettings) -> np.ndarray:
     """Point-to-plane ICP with a Tukey M-estimator from ``start``: the scene points near the
     object (M, 3) [m] are aligned to the model samples facing the sensor (exact normals), in
-    two stages (kernel 3k, radius 2 x max_distance; then k, max_distance); returns the pose."""
-    reg = o3d.pipelines.registration
+    two stages (kernel 3k, radius 2 x max_distance; then k, max_distance); returns the pose.
+    The iterations are :func:`object_localizer.point_to_plane.icp_point_to_plane` (Open3D's
+    Tukey point-to-plane ICP, compiled, with its grid-based exact nearest neighbours)."""
     s = settings
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near_points))
+    S = np.asarray(near_points, dtype=np.float64)
     if s.scene_voxel > 0:
-        src = src.voxel_down_sample(s.scene_voxel)
-    if len(src.points) > s.max_icp_points:     # big objects: a fixed, even share of the crop
-        step = len(src.points) / s.max_icp_points
-        src = src.select_by_index(np.floor(np.arange(s.max_icp_points) * step).astype(int)
-                                  .tolist())
+        S = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(S))
+                       .voxel_down_sample(s.scene_voxel).points)
+    if len(S) > s.max_icp_points:     # big objects: a fixed, even share of the crop
+        step = len(S) / s.max_icp_points
+        S = S[np.floor(np.arange(s.max_icp_points) * step).astype(int)]
     pose = np.asarray(start, dtype=float).copy()
-    criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, s.icp_iterations)
-    for scale, reach in ((3.0 * s.loss_scale, 2.0 * s.max_distance),
-                         (s.loss_scale, s.max_distance)):
-        target = _visible_target(model, pose)
-        if len(target.points) < 3 or len(src.points) < 3:
+    for scale, reach, min_step in ((3.0 * s.loss_scale, 2.0 * s.max_distance,
+                                    s.icp_coarse_min_step),
+                                   (s.loss_scale, s.max_distance, s.icp_min_step)):
+        P, N = _visible_target(model, pose)
+        if len(P) < 3 or len(S) < 3:
             break
-        est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=scale))
         # target frame = sensor; the scene is moved onto the model: T_scene->model_at_pose
-        res = reg.registration_icp(src, target, reach, np.eye(4), est, criteria)
-        correction = np.asarray(res.transformation)
+        correction, _, _, _ = icp_point_to_plane(S, P, N, reach, scale, s.icp_iterations,
+                                                 tolerance=1e-6, min_step=min_step)
         pose = np.linalg.solve(correction, pose)
     return pose
 

@@ -242,3 +242,26 @@ def _origin_shift(from_model, to_model):
     """Transform taking to_model's frame to from_model's frame for two identical boxes whose
     origins differ (both axis-aligned with the same extents): matches the box corners."""
     return make_transform(np.eye(3), from_model.box_min - to_model.box_min)
+
+
+def test_around_box_keeps_every_point_of_the_grown_box():
+    """The cheap crop for objects/<name>/cloud: the box segment taken from it equals the one
+    taken from the whole cloud (organised rows with NaN included)."""
+    from object_localizer.localization import segment_object_points
+
+    rng = np.random.default_rng(5)
+    model = np.array([[-0.03, -0.01, -0.02], [0.03, 0.01, 0.02]])      # box corners
+    template = type('Template', (), {'points': model})()
+    pose = make_transform(rotation_about_axis([0.2, 1.0, 0.3], 0.7), [0.05, -0.02, 0.5])
+    scene = rng.uniform([-0.3, -0.2, 0.3], [0.3, 0.2, 0.8], size=(60000, 3))
+    near = rng.uniform(-0.05, 0.05, size=(5000, 3)) @ pose[:3, :3].T + pose[:3, 3]
+    scene = np.vstack([scene, near]).astype(np.float32)
+    scene[rng.choice(len(scene), 3000, replace=False)] = np.nan
+    cloud = SceneCloud(scene)
+    for margin in (0.0, 0.005, 0.02):
+        crop = cloud.around_box(pose, model, margin)
+        full = scene[np.all(np.isfinite(scene), axis=1)].astype(float)
+        ours = segment_object_points(crop, template, pose, margin)
+        ref = segment_object_points(full, template, pose, margin)
+        assert len(ref) > 100 and len(crop) < len(full) / 4
+        np.testing.assert_array_equal(ours, ref)

@@ -1,0 +1,97 @@
+"""The compiled point-to-plane ICP: exact correspondences, Open3D's iteration, recovered motion."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial import cKDTree
+
+from object_localizer import point_to_plane as pp
+from stereo_manip_tools.transforms import make_transform, rotation_about_axis
+
+
+def _box_surface(rng, n=4000, size=(0.08, 0.04, 0.03)):
+    """Samples (n, 3) [m] of the faces of a box at 0.5 m with their outward normals."""
+    half = np.array(size) / 2
+    P, N = [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            q = rng.uniform(-half, half, size=(n // 6, 3))
+            q[:, axis] = sign * half[axis]
+            nrm = np.zeros((n // 6, 3))
+            nrm[:, axis] = sign
+            P.append(q)
+            N.append(nrm)
+    return np.vstack(P) + [0.0, 0.0, 0.5], np.vstack(N)
+
+
+def test_correspondences_are_the_exact_nearest_within_reach():
+    rng = np.random.default_rng(1)
+    P, _ = _box_surface(rng)
+    # points on the surface, near it and far from it (up to 3 x reach)
+    Q = P[rng.choice(len(P), 1500)] + rng.normal(0, 0.004, (1500, 3))
+    Q = np.vstack([Q, P[rng.choice(len(P), 500)] + rng.uniform(-0.05, 0.05, (500, 3))])
+    reach = 0.015
+    for fine_cell, cell in ((0.002, reach / 2), (0.001, reach / 4), (0.004, reach)):
+        fine = pp._build_grid(P, fine_cell) + (fine_cell,)
+        coarse = pp._build_grid(P, cell) + (cell,)
+        idx = np.empty(len(Q), np.int64)
+        far, moved = np.zeros(len(Q)), np.zeros(len(Q))
+        fitness, rmse, count = pp._correspond(Q, P, fine, coarse, reach, idx, far, moved)
+        d, j = cKDTree(P).query(Q, distance_upper_bound=reach)
+        inside = np.isfinite(d)
+        assert np.array_equal(idx >= 0, inside)
+        # the same distance (ties between equidistant samples may pick either)
+        np.testing.assert_allclose(np.linalg.norm(P[idx[inside]] - Q[inside], axis=1),
+                                   d[inside], atol=1e-12)
+        assert count == int(inside.sum())
+        assert fitness == pytest.approx(inside.mean())
+        assert rmse == pytest.approx(np.sqrt(np.mean(d[inside] ** 2)))
+        # the distances it keeps of the points beyond reach are lower bounds
+        d2 = cKDTree(P).query(Q)[0]
+        assert np.all(far[~inside] <= d2[~inside] + 1e-12)
+        assert np.all(far[~inside] > reach)
+        # points that moved less than their margin are not searched again, and stay unmatched;
+        # a point moved onto the surface is found again
+        moved[:] = 0.0
+        Q2 = Q.copy()
+        out = np.flatnonzero(~inside)
+        Q2[out[0]] = P[0]
+        moved[out[0]] = far[out[0]]
+        pp._correspond(Q2, P, fine, coarse, reach, idx, far, moved)
+        assert idx[out[0]] >= 0 and np.all(idx[out[1:]] == -1)
+
+
+def test_recovers_a_small_motion_and_matches_open3d():
+    rng = np.random.default_rng(2)
+    P, N = _box_surface(rng, 6000)
+    visible = P[:, 2] < 0.5 + 0.01        # roughly what a camera at the origin sees
+    P, N = P[visible], N[visible]
+    motion = make_transform(rotation_about_axis([0.3, 1.0, 0.2], 0.03), [0.003, -0.002, 0.002])
+    truth_src = P[rng.choice(len(P), 1500)]
+    S = (truth_src - motion[:3, 3]) @ motion[:3, :3]       # the source, moved by motion^-1
+    S += rng.normal(0, 0.0003, S.shape)
+    T, iterations, fitness, rmse = pp.icp_point_to_plane(S, P, N, 0.02, 0.0045, 30)
+    assert 1 <= iterations <= 30
+    assert fitness > 0.99 and rmse < 0.002
+    moved = S @ T[:3, :3].T + T[:3, 3]
+    err = np.linalg.norm(moved - truth_src, axis=1)
+    assert np.median(err) < 5e-4
+    # Open3D's Tukey point-to-plane ICP (which the tracker used) ends at the same pose
+    reg = o3d.pipelines.registration
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(S))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+    tgt.normals = o3d.utility.Vector3dVector(N)
+    res = reg.registration_icp(
+        src, tgt, 0.02, np.eye(4),
+        reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=0.0045)),
+        reg.ICPConvergenceCriteria(1e-6, 1e-6, 30))
+    ref = np.asarray(res.transformation)
+    assert np.abs(ref[:3, 3] - T[:3, 3]).max() < 5e-5
+    assert np.abs(ref[:3, :3] - T[:3, :3]).max() < 5e-4
+
+
+def test_empty_inputs_give_the_identity():
+    T, iterations, fitness, _ = pp.icp_point_to_plane(np.zeros((0, 3)), np.ones((5, 3)),
+                                                      np.ones((5, 3)), 0.01, 0.001)
+    assert iterations == 0 and fitness == 0.0
+    np.testing.assert_array_equal(T, np.eye(4))
