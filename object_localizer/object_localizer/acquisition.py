@@ -248,12 +248,17 @@ def prepare_acquisition_scene(scene_points: np.ndarray, scene_normals: Optional[
 
 
 def _rough_ppf(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
-               max_hypotheses: int, reference_stride: int) -> List[tuple]:
+               max_hypotheses: int, reference_stride: int,
+               max_references: int = 2500) -> List[tuple]:
     step = model.ppf.distance_step
     search = scene.cloud(step, drop_plane=True, min_plane_extent=2.0 * model.diameter,
                          seed=seed)
     S, SN = np.asarray(search.points), np.asarray(search.normals)
-    poses, votes = ppf_vote(model.ppf, S, SN, reference_stride=reference_stride, seed=seed)
+    # bounded work: voting costs references x neighbours and the clustering grows with the
+    # square of the votes' peaks, so a huge cloud (a million random points) gets a longer
+    # stride; the synthetic scenes have 900-1200 references at stride 5 (unchanged)
+    stride = max(int(reference_stride), -(-len(S) // max(int(max_references), 1)))
+    poses, votes = ppf_vote(model.ppf, S, SN, reference_stride=stride, seed=seed)
     poses, scores = cluster_poses(poses, votes, model.centroid, 0.1 * model.diameter,
                                   np.radians(20.0), max_clusters=max_hypotheses)
     return [(T, float(s)) for T, s in zip(poses, scores)]
@@ -351,7 +356,8 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
                    scene_normals: Optional[np.ndarray] = None, camera: CameraLike = None, *,
                    method: str = 'ppf', seed: int = 0, time_budget_s: float = 0.5,
                    max_rough: int = 50, max_refined: int = 8, max_slide: int = 2,
-                   reference_stride: int = 5, fpfh_attempts: int = 4,
+                   reference_stride: int = 5, max_references: int = 2500,
+                   fpfh_attempts: int = 4,
                    rough_tolerance: Optional[float] = None,
                    fine_tolerance: float = 0.004) -> List[Hypothesis]:
     """Find ``model`` in a scene cloud with no initial pose (module doc: rough, verification,
@@ -368,6 +374,8 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         hypothesis is refined).
     :param max_rough: rough hypotheses verified.
     :param reference_stride: PPF: every k-th scene sample is a reference point (Drost: 5).
+    :param max_references: PPF: at most this many reference points (a longer stride for larger
+        clouds: bounded work per cloud).
     :param max_refined: best rough hypotheses refined by ICP.
     :param max_slide: best refined hypotheses whose position is then searched along the model
         axes by the visibility score (and refined again when it moved).
@@ -385,7 +393,7 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
     scene = scene_points if isinstance(scene_points, AcquisitionScene) else \
         prepare_acquisition_scene(scene_points, scene_normals, camera)
     if method == 'ppf':
-        rough = _rough_ppf(model, scene, seed, max_rough, reference_stride)
+        rough = _rough_ppf(model, scene, seed, max_rough, reference_stride, max_references)
     else:
         rough = _rough_fpfh(model, scene, seed, fpfh_attempts)
     if not rough:

@@ -64,6 +64,7 @@ class ObjectLocalizerNode(Node):
         'max_visible_residual': 'max_visible_residual',
         'max_free_space_fraction': 'max_free_space_fraction',
         'max_prediction_error': 'max_prediction_error',
+        'min_edge_fraction': 'min_edge_fraction',
         'max_penetration': 'max_penetration',
         'stereo_baseline': 'stereo_baseline',
         'static_recheck_period': 'static_recheck_period',
@@ -115,6 +116,11 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('max_prediction_error', 0.02,
                                _float('largest mean displacement [m] from the constant-velocity '
                                       'prediction, for a published pose', 0.0005, 1.0))
+        self.declare_parameter('min_edge_fraction', 0.25,
+                               _float('smallest share of the model outline where the observed '
+                                      'depth just outside jumps behind the model (a pose sunk '
+                                      'into a larger surface has none), for a published pose',
+                                      0.0, 1.0))
         self.declare_parameter('stereo_baseline', 0.1,
                                _float('x [m] of the second stereo camera in the cloud frame: '
                                       'the check expects only surfaces both cameras face (0: '

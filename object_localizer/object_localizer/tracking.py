@@ -17,7 +17,12 @@ Per cloud and object (:meth:`ObjectTracker.update`):
    clearly behind it is a free-space violation (the sensor sees through where the object would
    be); no observation counts as missing. From these: the inlier fraction, the RMS residual of
    the inliers (the visible-surface residual), the free-space violation fraction, and the mean
-   displacement of the model points from the prediction. The pose passes only if all of them
+   displacement of the model points from the prediction. Then the silhouette: an object of
+   its own makes a depth edge along its outline (the observed depth just outside jumps behind
+   it), a pose sunk into a larger surface does not -- every visible sample is an inlier, but
+   the observed surface goes on past the outline (a box face inside a table top, a wall, the
+   flat surface a stereo matcher makes at the limit of its disparity band); the share of the
+   outline with an edge must reach ``min_edge_fraction``. The pose passes only if all of them
    pass their thresholds. A pose that fails is never returned as a pose.
 4. **States.** ``ACQUIRING`` (no pose yet: the global acquisition runs on the whole cloud),
    ``TRACKING``, ``LOST`` (the last pose failed: the next cloud is searched globally, from
@@ -98,6 +103,19 @@ class TrackerSettings:
         measured reliably by stereo, and are often hidden from the second camera).
     :ivar min_visible_samples: a pose whose expected-visible samples (after occlusion) are fewer
         cannot be verified and is not published.
+    :ivar min_edge_fraction: smallest share of the model's judged silhouette where the observed
+        depth just outside jumps behind the model (or is missing): a model whose visible
+        surface lies inside a larger observed surface (a face sunk into a table top, a wall,
+        the flat band-limit surface of a stereo matcher, a bigger part) explains every visible
+        sample but has no silhouette edges; such a pose is rejected
+        (:func:`object_localizer.verification.silhouette_edges`).
+    :ivar edge_threshold: depth jump [m] that counts as a silhouette edge.
+    :ivar edge_gap: distance [m, at the object] from the outline of the observed depth judged
+        by the edge test (at least ``EDGE_GAP`` pixels of the check's image): stereo matching
+        fattens foreground silhouettes by about half its window (3-4 camera pixels, 2-3 mm
+        at 0.5 m with 600 px), and that band must be stepped over.
+    :ivar min_edge_samples: fewer judged silhouette pixels (the rest occluded) leave the edge
+        test undecided: it neither passes nor fails the pose.
     :ivar max_penetration: a pose that puts more than 10 % of the model's volume deeper than
         this [m] inside another object's verified pose is rejected (physically impossible; the
         typical wrong pose of a part lying on a bigger one).
@@ -125,6 +143,10 @@ class TrackerSettings:
     max_visible_residual: float = 0.0015
     max_free_space_fraction: float = 0.15
     max_prediction_error: float = 0.02
+    min_edge_fraction: float = 0.25
+    edge_threshold: float = 0.01
+    edge_gap: float = 0.005
+    min_edge_samples: int = 12
     prediction_horizon: float = 0.25
     stereo_baseline: float = 0.1
     min_view_cos: float = 0.3
@@ -313,7 +335,10 @@ class PoseQuality:
     """Result of :func:`check_pose` (see the module docstring).
 
     :ivar quality: summary in [0, 1]: the inlier fraction, reduced linearly by the residual, the
-        free-space violations and the prediction error relative to their limits.
+        free-space violations and the prediction error relative to their limits, and scaled by
+        the silhouette edge support relative to twice its limit (capped at 1).
+    :ivar edge_fraction: silhouette edge support in [0, 1] (NaN: too few silhouette pixels
+        could be judged); see ``TrackerSettings.min_edge_fraction``.
     :ivar passed: every check passed; ``reason`` names the first failed one.
     """
 
@@ -323,6 +348,7 @@ class PoseQuality:
     prediction_error: float = 0.0
     visible_samples: int = 0
     penetration: float = 0.0
+    edge_fraction: float = float('nan')
     quality: float = 0.0
     passed: bool = False
     reason: str = ''
@@ -346,6 +372,60 @@ def _pixels(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[int, 
     v = np.floor((points[:, 1] / points[:, 2] - lo[1]) / pixel).astype(np.int64)
     ok = (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
     return v * shape[1] + u, ok
+
+
+#: smallest distance [pixels of the check's image] between the model's outline and the outside
+#: pixel judged by the edge test (see ``TrackerSettings.edge_gap``)
+EDGE_GAP = 2
+
+
+def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
+                             pixel: float, settings: TrackerSettings) -> float:
+    """Share of the model's silhouette (every sample facing the sensor, at ``pose``) where the
+    observed depth ``settings.edge_gap`` outside (at least ``EDGE_GAP`` pixels) jumps behind
+    it by more than
+    ``settings.edge_threshold`` or is missing (:func:`~object_localizer.verification.
+    silhouette_edges`), on a virtual pinhole image of ``pixel`` [normalised image units, i.e.
+    radians] over the silhouette; NaN when fewer than ``settings.min_edge_samples`` pixels
+    could be judged. Model and scene are drawn by the acquisition's verification
+    (``render_model_depth``, ``observe_depth``).
+
+    :param cone_points: (M, 3) scene points [m] on the rays through the object.
+    """
+    from object_localizer.verification import observe_depth, PinholeCamera, \
+        render_model_depth, silhouette_edges
+
+    R, t = pose[:3, :3], pose[:3, 3]
+    centres = model.points @ R.T + t
+    front = centres[:, 2] > 1e-6
+    if np.count_nonzero(front) < 3 or len(cone_points) < 3:
+        return float('nan')
+    a = centres[front, :2] / centres[front, 2:3]
+    depth = float(np.median(centres[front, 2]))
+    gap = max(EDGE_GAP, int(np.ceil(settings.edge_gap / (pixel * depth))))
+    margin = (gap + 2) * pixel
+    lo = a.min(axis=0) - margin
+    hi = a.max(axis=0) + margin
+    width, height = int((hi[0] - lo[0]) / pixel) + 1, int((hi[1] - lo[1]) / pixel) + 1
+    if width * height > 4_000_000:
+        return float('nan')
+    camera = PinholeCamera(1.0 / pixel, 1.0 / pixel, -lo[0] / pixel - 0.5,
+                           -lo[1] / pixel - 0.5, width, height)
+    sil = render_model_depth(model.points, model.normals, pose, camera, 0.0)
+    mask = np.isfinite(sil)
+    if not mask.any():
+        return float('nan')
+    # samples about as far apart as pixels leave single-pixel holes: fill those with model
+    # pixels on both sides (a hole would read as outline)
+    holes = np.zeros_like(mask)
+    holes[1:-1, :] |= mask[:-2, :] & mask[2:, :]
+    holes[:, 1:-1] |= mask[:, :-2] & mask[:, 2:]
+    sil[holes & ~mask] = np.nanmax(sil)
+    observed = observe_depth(cone_points, camera, stride=1).depth
+    sup, cont = silhouette_edges(sil, observed, settings.edge_threshold, gap)
+    if sup + cont < settings.min_edge_samples:
+        return float('nan')
+    return sup / (sup + cont)
 
 
 def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
@@ -431,6 +511,11 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
          f'{1e3 * q.prediction_error:.1f} mm from the prediction > '
          f'{1e3 * s.max_prediction_error:.1f} mm'),
     ]
+    q.edge_fraction = silhouette_edge_fraction(model, pose, cone_points, pixel, s)
+    checks.append((not q.edge_fraction < s.min_edge_fraction,
+                   f'silhouette edge support {q.edge_fraction:.2f} < {s.min_edge_fraction:.2f} '
+                   "(the observed surface goes on past the model's outline: it lies inside a "
+                   'larger surface)'))
     for other, other_pose in others:
         share = penetration(model, pose, other, other_pose, s.max_penetration)
         q.penetration = max(q.penetration, share)
@@ -440,7 +525,9 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
     q.passed = not failed
     q.reason = '; '.join(failed)
     res = q.visible_residual if np.isfinite(q.visible_residual) else s.max_visible_residual
-    q.quality = float(np.clip(q.inlier_fraction
+    edge = 1.0 if not np.isfinite(q.edge_fraction) or s.min_edge_fraction <= 0 else \
+        min(q.edge_fraction / (2.0 * s.min_edge_fraction), 1.0)
+    q.quality = float(np.clip(edge * q.inlier_fraction
                               * (1.0 - min(res / s.max_visible_residual, 1.0) / 2.0)
                               * (1.0 - min(q.free_space_fraction / s.max_free_space_fraction,
                                            1.0) / 2.0)

@@ -29,7 +29,7 @@ metres; pixels with integer centres. Images are coarsened by an integer ``stride
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping, Optional, Union
+from typing import Any, Mapping, Optional, Tuple, Union
 
 import numba
 import numpy as np
@@ -45,6 +45,7 @@ __all__ = [
     'render_model_depth',
     'sample_model_surface',
     'score_pose_visibility',
+    'silhouette_edges',
     'unoccluded_mask',
 ]
 
@@ -350,6 +351,37 @@ def _edges(model, observed, thr, gap):  # pragma: no cover - numba
     return sup, cont
 
 
+def silhouette_edges(model_depth: np.ndarray, observed_depth: np.ndarray, threshold: float,
+                     gap: int = 2) -> Tuple[int, int]:
+    """Depth-edge evidence along a rendered model's silhouette: the check that the model is an
+    object of its own and not a piece of a larger observed surface.
+
+    For every model pixel with a 4-neighbour ``gap`` pixels away that is off the model, the
+    observed depth at that outside pixel is
+
+    * **supported** (an edge): missing, or behind the model's depth there by more than
+      ``threshold`` -- the depth discontinuity an object's silhouette makes;
+    * **continuous**: within ``threshold`` of the model's depth -- the observed surface goes on
+      past the silhouette as if the model were painted onto it (a model sunk into a table,
+      a wall, or a larger part);
+    * neither: in front of the model (an occluder hides the silhouette).
+
+    Shared by :func:`score_pose_visibility` (``edge_fraction``, acquisition ranking) and
+    ``object_localizer.tracking.check_pose`` (acceptance of every published pose).
+
+    :param model_depth: (H, W) rendered model depth [m], NaN off the model; interior holes
+        must be filled (a hole reads as silhouette).
+    :param observed_depth: (H, W) observed depth [m] on the same pixels, NaN = nothing seen.
+    :param threshold: depth jump [m] that counts as an edge.
+    :param gap: distance [px] of the outside pixel (stereo matching fattens silhouettes by
+        about half its window: the pixel right next to the silhouette is unreliable).
+    :return: (supported, continuous) silhouette-pixel/direction counts.
+    """
+    sup, cont = _edges(np.asarray(model_depth, dtype=float),
+                       np.asarray(observed_depth, dtype=float), float(threshold), int(gap))
+    return int(sup), int(cont)
+
+
 def score_pose_visibility(surface: SurfaceSamples, pose: np.ndarray, observed: ObservedDepth,
                           *, inlier_threshold: float = 0.004,
                           violation_weight: float = 1.0,
@@ -373,7 +405,7 @@ def score_pose_visibility(surface: SurfaceSamples, pose: np.ndarray, observed: O
     if n == 0:
         return VisibilityScore(0.0, 0.0, 0.0, 0.0, 0.0, float('nan'), 0)
     score = (inl - violation_weight * vio) / n
-    sup, cont = _edges(model, observed.depth, float(edge_threshold), 2)
+    sup, cont = silhouette_edges(model, observed.depth, edge_threshold, 2)
     edge = sup / (sup + cont) if sup + cont else float('nan')
     return VisibilityScore(float(min(1.0, max(0.0, score))), inl / n, vio / n, occ / n,
                            unk / n, float(np.sqrt(ss / inl)) if inl else float('nan'), int(n),

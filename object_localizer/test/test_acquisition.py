@@ -223,3 +223,23 @@ def test_acquire_thin_bar_and_rail_lying_on_a_table(name):
         hyps = acquire_object(model, cloud, camera=CAMERA, seed=2, time_budget_s=30.0)
         e_t, e_r = symmetric_pose_error(hyps[0].pose, T, sym)
         assert e_t < 0.002 and e_r < np.radians(2.0), (name, yaw, e_t, np.degrees(e_r))
+
+
+def test_ppf_references_are_bounded_on_huge_clouds(meshes, monkeypatch):
+    """Bounded work per cloud: a cloud of 100 000 random points gets at most max_references
+    PPF reference points (a longer stride); an object-sized cloud keeps Drost's stride 5."""
+    import object_localizer.acquisition as acquisition
+    model = prepare_acquisition_model(meshes['link_arm'])
+    seen = []
+
+    def vote(ppf, S, SN, reference_stride, seed):
+        seen.append((len(S), reference_stride))
+        return np.zeros((0, 4, 4)), np.zeros(0)
+    monkeypatch.setattr(acquisition, 'ppf_vote', vote)
+    junk = np.random.default_rng(1).random((100_000, 3)) * 2.0 + [-1.0, -1.0, 0.2]
+    assert acquire_object(model, junk, max_references=1000) == []
+    samples, stride = seen[-1]
+    assert samples > 5000 and -(-samples // stride) <= 1000 and stride > 5
+    T = make_transform(rotation_about_axis([0.2, 1.0, 0.1], 0.9), [0.03, -0.02, 0.7])
+    acquire_object(model, sample_visible_surface(meshes['link_arm'], T, 6000, seed=3))
+    assert seen[-1][1] == 5
