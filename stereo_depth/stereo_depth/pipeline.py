@@ -267,7 +267,11 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, method: str = 'sgm',
     :param min_disparity: smallest disparity searched [px] (>= 0). The pair is cropped to
         ``left[:, m:]`` and ``right[:, :W - m]`` and matched over 0 .. D-1, so a scene whose
         disparities lie in a band costs D, not m + D, candidates; columns x < m of the result
-        are NaN (their match would lie outside the right image).
+        are NaN (their match would lie outside the right image). In a band (m > 0) a match at
+        either end of it (within half a pixel of m or of m + D - 1) is NaN too: its cost was
+        still falling at the band's limit, so it says only that the surface lies beyond the
+        band; kept, every pixel farther than the band (the background) would become one flat
+        fake surface at depth ``f B / m``, and every nearer one a surface at ``f B / (m+D-1)``.
     :param params: method parameters overriding :func:`method_defaults`; unknown names raise.
     :return: (H, W) float32 disparities in pixels, NaN where unknown.
     """
@@ -291,6 +295,7 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, method: str = 'sgm',
     lc, rc = np.ascontiguousarray(left[:, m:]), np.ascontiguousarray(right[:, :w - m])
     check_pair(lc, rc, max_disparity)
     d = METHODS[method].function(lc, rc, int(max_disparity), **p)
+    d[(d < 0.5) | (d > int(max_disparity) - 1.5)] = np.nan      # clamped at the band's ends
     out = np.full(left.shape[:2], np.nan, np.float32)
     out[:, m:] = d + np.float32(m)
     return out

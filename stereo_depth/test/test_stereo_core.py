@@ -371,6 +371,27 @@ def test_min_disparity_searches_a_band_and_reports_full_disparities(method):
         compute_disparity(left, right, method, 16, min_disparity=-1)
 
 
+def test_surfaces_beyond_the_band_are_unknown_not_flattened_onto_its_ends():
+    """The demo's band (48 .. 111 px) on a synthetic peg_in_hole frame: the background lies
+    farther than the band and the near table closer; clamped to the band's first or last
+    candidate they became fake flat surfaces (18 % of the valid pixels, 41 501 of them exactly
+    at 48 px = 1.25 m). Now no disparity lies at the band's ends, few valid pixels lack an
+    in-band truth, and the in-band pixels stay right."""
+    from stereo_depth.synthetic import render
+    left, right, info = render('peg_in_hole', 0)
+    truth = info['disparity']
+    lo, count = 48, 64
+    disp = compute_disparity(left, right, 'block_matching', count, min_disparity=lo)
+    found = np.isfinite(disp)
+    ends = found & ((np.abs(disp - lo) < 0.5) | (np.abs(disp - (lo + count - 1)) < 0.5))
+    assert ends.sum() == 0, f'{ends.sum()} pixels at the band ends'
+    in_band = np.isfinite(truth) & (truth > lo - 0.5) & (truth < lo + count - 0.5)
+    fake = found & ~in_band
+    assert fake.sum() < 0.06 * found.sum(), f'{fake.sum()} of {found.sum()} without in-band truth'
+    ok = found & in_band
+    assert np.mean(np.abs(disp[ok] - truth[ok]) <= 1.0) > 0.9
+
+
 @pytest.mark.parametrize('organized', [False, True])
 def test_cloud_points_decimates_and_organises(organized):
     fx, cx, cy = 500.0, 4.5, 3.0
