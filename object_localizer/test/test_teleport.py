@@ -3,12 +3,14 @@
 The synthetic ``peg_in_hole`` scene, looping, jumps from its last frame (the peg inserted in the
 hole) to its first (the peg 10 cm above the block, 18 cm away). Its stereo clouds are made the
 way the live graph makes them (census block matching over the demo's disparity band 48..159 px,
-every 2nd pixel, the node's PointCloud2 reader). Block matching cannot measure anything
-farther than its smallest disparity (1.25 m here) and puts it there: the far table and the
-floor become a flat fronto-parallel surface at z = 1.25 m. A peg lying in that surface, one
-face towards the camera, explains the samples it shows (inlier fraction > 0.9, residual well
-under 1 mm) while 0.84 m from the truth: the soak re-acquired and tracked exactly such a pose
-after scene loops. The silhouette edge test of ``check_pose`` rejects it.
+every 2nd pixel, the node's PointCloud2 reader), with a wall: a flat fronto-parallel surface
+at z = 1.25 m (the band's far limit) that hides everything beyond it. A peg lying in that
+surface, one face towards the camera, explains the samples it shows (inlier fraction > 0.9,
+residual well under 1 mm) while 0.84 m from the truth: the soak re-acquired and tracked exactly
+such a pose after scene loops, where the surface was the stereo node's own artefact (block
+matching put everything farther than its band at the band's limit; it now leaves it unknown).
+A real wall or table top makes the same trap; the silhouette edge test of ``check_pose``
+rejects it.
 """
 
 from dataclasses import replace
@@ -27,8 +29,8 @@ LAST_FRAME = 224       # the scene's last frame; the next one is frame 0
 
 
 def stereo_cloud(frame):
-    """(N, 3) float32 cloud [m] of a ``peg_in_hole`` frame as the live graph's localizer reads
-    it, and the truth ``{name: 4x4}``."""
+    """(N, 3) float32 cloud [m] of a ``peg_in_hole`` frame before a wall at 1.25 m, as the live
+    graph's localizer reads it, and the truth ``{name: 4x4}``."""
     from stereo_depth.pipeline import cloud_points, compute_disparity, disparity_to_depth
     from stereo_depth.synthetic import render
     from stereo_manip_tools.conversions import read_pointcloud2, xyz_to_pointcloud2
@@ -36,6 +38,10 @@ def stereo_cloud(frame):
     left, right, truth = render('peg_in_hole', frame)
     cam = truth['camera']
     disparity = compute_disparity(left, right, 'block_matching', 112, min_disparity=48)
+    # the wall at the band's far limit (48 px = 1.25 m), in front of all that lies beyond it
+    beyond = ~(truth['depth'] < cam['fx'] * cam['baseline'] / 48.0)
+    beyond[:, :48] = False                                 # not searched: stays unknown
+    disparity[beyond] = 48.0
     depth = disparity_to_depth(disparity, cam['fx'], cam['baseline'])
     points, _ = cloud_points(depth, cam['fx'], cam['fy'], cam['cx'], cam['cy'], 2)
     cloud = read_pointcloud2(xyz_to_pointcloud2(points), keep_rows=True, max_points=100_000,
@@ -44,9 +50,9 @@ def stereo_cloud(frame):
 
 
 def band_limit_pose(cloud):
-    """The peg lying in the band-limit surface (z = 1.25 m), its +x face towards the camera."""
+    """The peg lying in the wall (z = 1.25 m), its +x face towards the camera."""
     far = cloud[np.isfinite(cloud[:, 2]) & (cloud[:, 2] > 1.2)]
-    assert len(far) > 2000, 'no band-limit surface in this cloud'
+    assert len(far) > 2000, 'no wall in this cloud'
     R = np.column_stack([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
     centre = np.median(far, axis=0) + [0.0, 0.0, 0.02]   # the box centre, 2 cm behind its face
     return make_transform(R, centre - R @ [0.0, 0.0, 0.06])
@@ -103,7 +109,7 @@ def test_the_band_limit_pose_is_rejected_by_the_silhouette_test_alone(loop):
 
 def test_after_the_loop_a_wrong_candidate_is_never_published(loop):
     """The tracked peg teleports at the scene loop. The acquisition's first answer is the
-    band-limit pose: nothing is published, the track is LOST and says why; on the next cloud
+    wall pose: nothing is published, the track is LOST and says why; on the next cloud
     the acquisition offers the wrong pose and the right one: the right one is published."""
     models, (cloud_a, truth_a), (cloud_b, truth_b) = loop
     offered = []
@@ -149,7 +155,7 @@ def test_scene_loop_with_the_global_acquisition_gives_the_truth_or_nothing(loop)
 
 @pytest.mark.process
 def test_node_reports_the_wrong_pose_and_publishes_only_the_truth(ros_node, loop):
-    """object_localizer_node as a process, on the cloud after the loop, given the band-limit
+    """object_localizer_node as a process, on the cloud after the loop, given the wall
     pose as the peg's hint (the pose the soak's localizer had): the status of the first cloud
     says the hint was rejected and why; every pose the node publishes is the truth."""
     from geometry_msgs.msg import PoseStamped
