@@ -68,7 +68,7 @@ changed=1
 if [ -f "$STAMP" ]; then
   changed=$(cd "$ROOT" && find "${PKG_DIRS[@]}" -newer "$STAMP" -type f \
     -not -path '*/__pycache__/*' -not -name '*.pyc' -not -path '*/.pytest_cache/*' \
-    -not -path '*/test/*' | head -1 | wc -l)
+    -not -path '*/test/*' -print -quit | wc -l)
   for d in "${COMPAT_DIRS[@]}"; do [ -d "$ROOT/install/$(basename "$d")" ] || changed=1; done
 fi
 if [ "$changed" != 0 ]; then
