@@ -1,5 +1,8 @@
-"""What every node needs to survive bad input: counted, rate-limited rejections, a guard
-around callbacks, and start-up errors as one line + exit code 1.
+"""
+What every node needs to survive bad input.
+
+counted, rate-limited rejections, a guard around callbacks, and start-up errors as one line + exit
+code 1.
 
 - :class:`InputRejections`: ``reject(reason, message)`` counts per reason and logs a warning
   at most once per second and reason (a misconfigured 30 Hz source must not flood the log);
@@ -32,7 +35,8 @@ NodeT = TypeVar('NodeT')
 
 
 class InputRejections:
-    """Counts of rejected input per reason, with rate-limited warnings on ``logger``.
+    """
+    Counts of rejected input per reason, with rate-limited warnings on ``logger``.
 
     :param period: shortest interval [s] between two warnings of the same reason.
     """
@@ -67,8 +71,11 @@ class InputRejections:
 
     def guard(self, callback: Callable[..., Any], what: str,
               default: Optional[Callable[..., Any]] = None) -> Callable[..., Any]:
-        """``callback`` that never raises: ValueError -> rejection (its ``reason`` attribute or
-        ``'invalid'``), any other Exception -> ``'internal_error'``, logged with its type.
+        """
+        Wrap ``callback`` so that it never raises.
+
+        ValueError -> rejection (its ``reason`` attribute or ``'invalid'``), any other Exception ->
+        ``'internal_error'``, logged with its type.
 
         :param default: for service callbacks, called with the callback's arguments and the
             exception to build the response returned instead.
@@ -104,8 +111,12 @@ def init_or_exit(args: Optional[Sequence[str]], prog: str) -> None:
 
 def create_node_or_exit(factory: Callable[..., NodeT], prog: str, *args: Any,
                         **kwargs: Any) -> NodeT:
-    """``factory(*args, **kwargs)``; a start-up error (:data:`STARTUP_ERRORS`) prints
-    ``<prog>: <reason>`` on stderr, shuts rclpy down and exits with code 1."""
+    """
+    Return ``factory(*args, **kwargs)``, exiting cleanly on a start-up error.
+
+    A start-up error (:data:`STARTUP_ERRORS`) prints ``<prog>: <reason>`` on stderr, shuts rclpy
+    down and exits with code 1.
+    """
     try:
         return factory(*args, **kwargs)
     except STARTUP_ERRORS as exc:

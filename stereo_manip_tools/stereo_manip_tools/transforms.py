@@ -1,4 +1,5 @@
-"""Rigid-transform and rotation helpers shared by every stereo_manip package (pure numpy).
+"""
+Rigid-transform and rotation helpers shared by every stereo_manip package (pure numpy).
 
 Conventions (REP 103): metres and radians; a pose is a 4x4 homogeneous matrix ``T`` that maps
 points from a child frame into a parent frame, ``p_parent = T[:3, :3] @ p_child + T[:3, 3]``.
@@ -28,7 +29,7 @@ __all__ = [
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """Return the 3x3 cross-product matrix ``[v]x`` so that ``skew(v) @ w == cross(v, w)``."""
+    """Return the 3x3 cross-product matrix ``[v]x`` (``[v]x @ w == cross(v, w)``)."""
     x, y, z = np.asarray(v, dtype=float).reshape(3)
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
@@ -68,7 +69,7 @@ def rotation_angle(R: np.ndarray) -> float:
 
 
 def is_rotation_matrix(R: np.ndarray, tol: float = 1e-6) -> bool:
-    """True when ``R`` is a finite 3x3 matrix with ``R^T R = I`` and ``det R = +1`` within tol."""
+    """Tell if ``R`` is a finite 3x3 matrix with ``R^T R = I`` and ``det R = +1`` within tol."""
     R = np.asarray(R, dtype=float)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         return False
@@ -104,7 +105,7 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a 3x3 rotation matrix (Shepperd)."""
+    """Convert a 3x3 rotation matrix to a unit quaternion ``(x, y, z, w)``, ``w >= 0``."""
     R = np.asarray(R, dtype=float)
     tr = np.trace(R)
     cands = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
@@ -127,8 +128,7 @@ def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
 
 
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
-    """3x3 rotation matrix of a quaternion ``(x, y, z, w)``; raises ValueError if not normalisable.
-    """
+    """Convert a quaternion ``(x, y, z, w)`` to a 3x3 rotation matrix (ValueError: zero/NaN)."""
     q = np.asarray(q, dtype=float).reshape(4)
     n = np.linalg.norm(q)
     if not np.isfinite(n) or n < 1e-9:
@@ -142,7 +142,8 @@ def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
 
 
 def minimal_rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest-angle rotation taking direction ``a`` onto direction ``b`` (both shape (3,)).
+    """
+    Smallest-angle rotation taking direction ``a`` onto direction ``b`` (both shape (3,)).
 
     The axis is ``a x b``; for antiparallel vectors any axis perpendicular to ``a`` is used.
     """
@@ -176,7 +177,10 @@ def check_transform(T: np.ndarray, name: str = 'pose', tol: float = 1e-6) -> np.
 
 
 def pose_from_xyz_quaternion(values, name: str = 'pose') -> np.ndarray:
-    """4x4 pose of the parameter form ``[x, y, z, qx, qy, qz, qw]`` (metres; quaternion in ROS
+    """
+    4x4 pose of the parameter form ``[x, y, z, qx, qy, qz, qw]``.
+
+    4x4 pose of the parameter form ``[x, y, z, qx, qy, qz, qw]`` (metres; quaternion in ROS
     order, normalised here).
 
     :raises ValueError: naming ``name``: not 7 numbers, non-finite, or a zero quaternion.
