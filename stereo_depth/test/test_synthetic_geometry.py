@@ -1,14 +1,16 @@
-"""Geometry acceptance of the synthetic stereo camera: exact correspondences, disparity,
-occlusion, and agreement with an independent ray caster (Open3D)."""
+"""
+Geometry acceptance of the synthetic stereo camera.
+
+Exact correspondences, disparity, occlusion, and agreement with an independent ray caster (Open3D).
+"""
 
 import numpy as np
 import open3d as o3d
 import pytest
-
-from stereo_manip_tools.mesh_io import find_model, load_obj
-from stereo_manip_tools.transforms import invert_transform, make_transform, rotation_about_axis
 from stereo_depth.synthetic import (
     look_at, make_scene, render, RenderOptions, SCENES, StereoCamera, StereoRenderer)
+from stereo_manip_tools.mesh_io import find_model, load_obj
+from stereo_manip_tools.transforms import invert_transform, make_transform, rotation_about_axis
 
 FRAMES = [('peg_in_hole', 10), ('peg_in_hole', 60), ('peg_in_hole', 100),
           ('peg_in_hole', 150), ('peg_in_hole', 200), ('peg_in_slot', 100),
@@ -17,8 +19,12 @@ FRAMES = [('peg_in_hole', 10), ('peg_in_hole', 60), ('peg_in_hole', 100),
 
 
 def _reprojection_errors(truth, n=400, seed=0):
-    """Distance [px] between the projection into the right camera of the back-projected left
-    depth and the right-image location whose texture coordinates equal the left pixel's."""
+    """
+    Reprojection distances [px] of the left depth into the right image.
+
+    Distance [px] between the projection into the right camera of the back-projected left
+    depth and the right-image location whose texture coordinates equal the left pixel's.
+    """
     cam = truth['camera']
     K, P_r = cam['K'], cam['P_right']
     H, W = truth['depth'].shape
@@ -113,8 +119,12 @@ def _ray_box_hit(origins, dirs, lo, hi):
 
 
 def test_occlusion_mask_matches_analytic_box_occluder():
-    """A cube floating in front of a wall: a wall point is occluded iff the segment from it
-    to the right optical centre enters the cube (computed here analytically)."""
+    """
+    A cube floating in front of a wall.
+
+    a wall point is occluded iff the segment from it to the right optical centre enters the cube
+    (computed here analytically).
+    """
     cam = StereoCamera.create(width=320, height=240, fx=300.0, baseline=0.1)
     table, cube = load_obj(find_model('table')), load_obj(find_model('cube'))
     r = StereoRenderer(cam, [table, cube], seed=3)
@@ -243,8 +253,12 @@ def test_look_at_gives_optical_frame():
 
 @pytest.mark.parametrize('scene', ['peg_in_hole', 'primitives', 'revolute_pair'])
 def test_cached_static_layer_gives_identical_output(scene):
-    """Rendering the static objects once and reusing them changes nothing, also when the
-    static poses change between calls (the cache is keyed by the exact poses)."""
+    """
+    Rendering the static objects once and reusing them changes nothing.
+
+    Rendering the static objects once and reusing them changes nothing, also when the
+    static poses change between calls (the cache is keyed by the exact poses).
+    """
     s = make_scene(scene, seed=2)
     cam = StereoCamera.create(width=320, height=240, fx=300.0)
     meshes = [load_obj(find_model(n)) for n in s.objects]

@@ -1,4 +1,5 @@
-"""Generator of the object models shipped in ``stereo_manip_models/models/`` (pure numpy).
+"""
+Generator of the object models shipped in ``stereo_manip_models/models/`` (pure numpy).
 
 Run ``python -m stereo_depth.synthetic.make_models [out_dir]`` to (re)write every model; the
 committed OBJ files are exactly its output, so the models are reproducible. All models are in
@@ -96,7 +97,8 @@ def peg() -> PolygonMesh:
 
 
 def hole_block(size: float = 0.16, height: float = 0.08, hole: float = 0.04) -> PolygonMesh:
-    """Block with a square through hole; origin at the top-face centre, +z up.
+    """
+    Block with a square through hole; origin at the top-face centre, +z up.
 
     Vertices 0-3 outer top, 4-7 inner top, 8-11 outer bottom, 12-15 inner bottom, each ring
     counter-clockwise seen from +z starting at (-,-).
@@ -118,7 +120,8 @@ def hole_block(size: float = 0.16, height: float = 0.08, hole: float = 0.04) -> 
 
 def slot_block(size: float = 0.16, height: float = 0.08, width: float = 0.04,
                depth: float = 0.04) -> PolygonMesh:
-    """Block with a slot along x across the top; origin at the top-face centre, +z up.
+    """
+    Block with a slot along x across the top; origin at the top-face centre, +z up.
 
     The U-shaped cross-section (y, z) is extruded along x; each end face is split into three
     convex quads that use only the section's own vertices (no T-junctions).
@@ -155,7 +158,8 @@ def cube(edge: float = PRIMITIVES['cube']['edge']) -> PolygonMesh:
 
 def _revolution_grid(ring_xy: np.ndarray, ring_z: np.ndarray, profile: np.ndarray,
                      name: str) -> PolygonMesh:
-    """Surface P(i, j) = (profile[i] * ring_xy[j], ring_z[i]) closed by polar caps.
+    """
+    Surface P(i, j) = (profile[i] * ring_xy[j], ring_z[i]) closed by polar caps.
 
     ``profile`` (n_i,) radial factor, ``ring_z`` (n_i,) heights from bottom (-z) to top,
     ``ring_xy`` (n_j, 2) CCW around +z. Quads between rings are trapezoids (planar) because
@@ -201,7 +205,8 @@ def sphere() -> PolygonMesh:
 
 
 def superquadric() -> PolygonMesh:
-    """Superellipsoid x = a1 C(eta)^e1 C(w)^e2, y = a2 C(eta)^e1 S(w)^e2, z = a3 S(eta)^e1.
+    """
+    Superellipsoid x = a1 C(eta)^e1 C(w)^e2, y = a2 C(eta)^e1 S(w)^e2, z = a3 S(eta)^e1.
 
     C/S are the signed powers of cos/sin; implicit form
     ``((|x/a1|^(2/e2) + |y/a2|^(2/e2))^(e2/e1) + |z/a3|^(2/e1)) = 1``.
@@ -317,7 +322,10 @@ MODEL_NAMES: Tuple[str, ...] = (
 
 
 def check_closed_manifold(mesh: PolygonMesh, planarity_tol: float = 1e-9) -> None:
-    """Raise ``ValueError`` unless every edge is used once in each direction (closed, oriented
+    """
+    Raise ``ValueError`` unless the mesh is a closed, oriented, convex-faced solid.
+
+    Raise ``ValueError`` unless every edge is used once in each direction (closed, oriented
     2-manifold), every face is planar and strictly convex-or-flat, and the volume is positive.
     """
     from collections import Counter

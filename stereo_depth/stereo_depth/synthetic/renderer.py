@@ -1,4 +1,5 @@
-"""Ray-cast stereo renderer with exact ground truth (CPU, headless).
+"""
+Ray-cast stereo renderer with exact ground truth (CPU, headless).
 
 Both views are cast from their own optical centre (no warping), so occlusions are real. A ray
 through pixel (u, v) has direction ((u - cx)/fx, (v - cy)/fy, 1): its hit parameter is the depth
@@ -56,7 +57,8 @@ __all__ = ['RenderOptions', 'StereoRenderer']
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """Photometric options.
+    """
+    Photometric options.
 
     :ivar color: True for rgb8 images (H, W, 3), False for mono8 (H, W).
     :ivar noise_sigma: std of additive Gaussian noise [grey levels 0-255] (>= 0).
@@ -113,7 +115,8 @@ class _Model:
 
 
 class StereoRenderer:
-    """Renders stereo pairs of a fixed set of object models at given poses.
+    """
+    Renders stereo pairs of a fixed set of object models at given poses.
 
     Not thread-safe: one renderer reuses its working buffers; use one per thread.
 
@@ -234,7 +237,7 @@ class StereoRenderer:
         return view, setup
 
     def _static_layer(self, poses: Mapping[str, np.ndarray]) -> dict:
-        """Rendered buffers of the static objects (cached while their poses do not change)."""
+        """Render the buffers of the static objects (cached while their poses do not change)."""
         key = tuple((n, np.asarray(T, dtype=float).tobytes()) for n, T in sorted(poses.items()))
         if self._static is not None and self._static['key'] == key:
             return self._static
@@ -249,7 +252,8 @@ class StereoRenderer:
         return self._static
 
     def _photometric(self, img: np.ndarray, gain: float, rng: np.random.Generator) -> np.ndarray:
-        """Blur, gain, additive noise and quantisation to uint8 of a [0, 1] float image.
+        """
+        Blur, gain, additive noise and quantisation to uint8 of a [0, 1] float image.
 
         The noise samples are drawn from a per-renderer bank of 2^22 standard normals at a
         random offset per image (drawn from ``rng``), which is much faster than fresh samples.
@@ -263,7 +267,8 @@ class StereoRenderer:
 
     def render(self, poses: Mapping[str, np.ndarray], noise_key: Sequence[int] = (0,),
                static: Sequence[str] = ()) -> Tuple[np.ndarray, np.ndarray, dict]:
-        """Render one stereo pair.
+        """
+        Render one stereo pair.
 
         :param poses: ``{object name: T_left_object (4x4)}``; objects not listed are absent.
         :param noise_key: integers seeding the photometric noise of this pair (with the seed).
