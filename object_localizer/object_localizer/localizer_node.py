@@ -1,4 +1,5 @@
-"""``object_localizer_node``: finds, tracks and verifies known models in ``points2``.
+"""
+``object_localizer_node``: finds, tracks and verifies known models in ``points2``.
 
 Subscribes ``points2`` (sensor_msgs/PointCloud2; organised or not; QoS from ``input_qos``). A
 worker thread always processes the newest cloud (older unprocessed clouds are dropped and
@@ -20,22 +21,21 @@ import sys
 import threading
 from typing import Dict, List, Optional
 
-import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
-    SetParametersResult
-from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
-from rclpy.parameter import Parameter
-from sensor_msgs.msg import PointCloud2
-
+import numpy as np
 from object_localizer.acquisition import prepare_acquisition_model
 from object_localizer.conversions import cloud_xyz, track_status
 from object_localizer.localization import segment_object_points
 from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
     same_shape, SceneCloud, TrackerSettings
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
+    SetParametersResult
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
 from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, stamp_to_ns, \
     xyz_to_pointcloud2
@@ -207,7 +207,7 @@ class ObjectLocalizerNode(Node):
                                   for name, field in self._SETTING_OF_PARAMETER.items()})
 
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
-        """The only writer of tracker settings at run time (ranges are checked by rclpy)."""
+        """Write the tracker settings at run time (the only writer; rclpy checks the ranges)."""
         for p in params:
             if p.name == 'input_qos' and p.value not in INPUT_QOS_CHOICES:
                 return SetParametersResult(successful=False,

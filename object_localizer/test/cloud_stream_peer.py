@@ -1,4 +1,5 @@
-"""Producer process for the localizer's process tests: a camera-like stream of clouds.
+"""
+Producer process for the localizer's process tests: a camera-like stream of clouds.
 
 Publishes ``/points2`` (PointCloud2, reliable, 10 Hz) of a scene with the peg moving slowly over
 a table, and the peg's true pose on ``/objects/peg/pose_truth`` with the same stamp. The clouds
@@ -9,16 +10,15 @@ increasing).
 
 import time
 
-import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped
+import numpy as np
+from object_localizer.evaluation import sample_visible_surface
+import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial import cKDTree
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
-
-from object_localizer.evaluation import sample_visible_surface
 from stereo_manip_tools.conversions import matrix_to_pose, ns_to_stamp, xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
