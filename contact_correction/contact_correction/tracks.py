@@ -1,4 +1,5 @@
-"""Synthetic assembly tracks with exact contact relations and realistic stereo pose errors.
+"""
+Synthetic assembly tracks with exact contact relations and realistic stereo pose errors.
 
 Used by the benchmark ``bench/contact_tracks.py`` and the tests. Each track is a sequence of
 true relative poses of a moving object in a fixed object's model frame (exactly in contact, or
@@ -23,10 +24,9 @@ from dataclasses import dataclass
 from typing import Callable, Dict, List, Tuple
 
 import numpy as np
-
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
-from .polyhedron import Polyhedron, load_polyhedron
+from .polyhedron import load_polyhedron, Polyhedron
 from .shapes import t_peg_mesh, t_slot_block_mesh
 
 __all__ = ['Track', 'track_models', 'make_tracks', 'noisy_track', 'correlated_noise']
@@ -34,7 +34,8 @@ __all__ = ['Track', 'track_models', 'make_tracks', 'noisy_track', 'correlated_no
 
 @dataclass
 class Track:
-    """A true track.
+    """
+    A true track.
 
     :ivar name: track name.
     :ivar moving: moving object's polyhedron.
@@ -55,8 +56,11 @@ def _tr(x: float, y: float, z: float) -> np.ndarray:
 
 
 def track_models() -> Dict[str, Polyhedron]:
-    """The polyhedra of the tracks: t_peg, t_slot_block (built) and the shipped peg,
-    hole_block, slot_block."""
+    """
+    Build the polyhedra of the tracks.
+
+    t_peg, t_slot_block (built) and the shipped peg, hole_block, slot_block.
+    """
     out = {'t_peg': load_polyhedron(t_peg_mesh()),
            't_slot_block': load_polyhedron(t_slot_block_mesh())}
     for n in ('peg', 'hole_block', 'slot_block'):
@@ -75,7 +79,7 @@ def _seq(phases: List[Tuple[str, np.ndarray, Callable[[float], np.ndarray]]]
 
 
 def make_tracks(models: Dict[str, Polyhedron]) -> List[Track]:
-    """The four true tracks (see the module docstring)."""
+    """Make the four true tracks (see the module docstring)."""
     tp, tb = models['t_peg'], models['t_slot_block']
     peg, hole, slot = models['peg'], models['hole_block'], models['slot_block']
     lin = np.linspace
@@ -115,8 +119,12 @@ def make_tracks(models: Dict[str, Polyhedron]) -> List[Track]:
 
 def correlated_noise(rng: np.random.Generator, n: int, sigma: float, rho: float
                      ) -> np.ndarray:
-    """AR(1) noise (n, 3), stationary standard deviation ``sigma`` per component and
-    frame-to-frame correlation ``rho``."""
+    """
+    Draw AR(1) noise (n, 3).
+
+    AR(1) noise (n, 3), stationary standard deviation ``sigma`` per component and
+    frame-to-frame correlation ``rho``.
+    """
     e = np.empty((n, 3))
     e[0] = rng.normal(size=3) * sigma
     s = sigma * np.sqrt(1.0 - rho * rho)
@@ -127,10 +135,12 @@ def correlated_noise(rng: np.random.Generator, n: int, sigma: float, rho: float
 
 def noisy_track(track: Track, rng: np.random.Generator, sigma_t: float, sigma_r: float,
                 rho: float = 0.85) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Camera-frame poses of a track: the fixed object at a (random) pose in front of the
-    camera, the moving object's true pose and its observation with correlated errors
-    (translation ``sigma_t`` [m] per axis, rotation ``sigma_r`` [rad] per axis about the moving
-    object's origin).
+    """
+    Camera-frame poses of a track.
+
+    The fixed object at a (random) pose in front of the camera, the moving object's true pose and
+    its observation with correlated errors (translation ``sigma_t`` [m] per axis, rotation
+    ``sigma_r`` [rad] per axis about the moving object's origin).
 
     :returns: (T_fixed (4, 4), T_moving_true (N, 4, 4), T_moving_observed (N, 4, 4)).
     """
