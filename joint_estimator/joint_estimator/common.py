@@ -1,4 +1,5 @@
-"""Shared types, input validation and batched rotation helpers of the joint estimator (pure numpy).
+"""
+Shared types, input validation and batched rotation helpers of the joint estimator (pure numpy).
 
 The estimator works on the relative track of link A in link B's frame: ``T[t] = ^B T_A(t)``, an
 (N, 4, 4) array of rigid transforms (metres, radians), ``R[t] = ^B Theta_A(t)`` and
@@ -60,7 +61,8 @@ class DegenerateMotionError(ValueError):
 
 @dataclass
 class JointFit:
-    """A fitted joint with its corrected track.
+    """
+    A fitted joint with its corrected track.
 
     Directions are unit vectors, points in metres. ``axis_in_a``/``axis_in_b`` are ``^A l`` and
     ``^B l`` (the plane normal for PLANAR, the sliding direction for PRISMATIC, zero for FIXED and
@@ -129,7 +131,7 @@ class JointFit:
 
     @property
     def repaired_indices(self) -> np.ndarray:
-        """Indices (int array) of the frames whose ambiguous twin pose was used."""
+        """Return the indices (int array) of the frames whose ambiguous twin pose was used."""
         if self.repaired is None:
             return np.zeros(0, dtype=int)
         return np.flatnonzero(self.repaired)
@@ -141,7 +143,7 @@ class JointFit:
 
     @property
     def outlier_indices(self) -> np.ndarray:
-        """Indices (int array) of the frames rejected as outliers."""
+        """Return the indices (int array) of the frames rejected as outliers."""
         return np.flatnonzero(~self.inliers)
 
     @property
@@ -158,7 +160,8 @@ class JointFit:
 def validate_track(poses: np.ndarray, stamps_ns: Optional[Sequence[int]] = None,
                    min_poses: int = 1, tol: float = 1e-5,
                    name: str = 'relative track') -> np.ndarray:
-    """Check a pose track and return it as a float (N, 4, 4) array, raising ``ValueError``.
+    """
+    Check a pose track and return it as a float (N, 4, 4) array, raising ``ValueError``.
 
     :param poses: (N, 4, 4) rigid transforms.
     :param stamps_ns: optional (N,) stamps [ns]; they must be strictly increasing.
@@ -203,7 +206,8 @@ def validate_track(poses: np.ndarray, stamps_ns: Optional[Sequence[int]] = None,
 
 
 def relative_track(link_a: np.ndarray, link_b: np.ndarray) -> np.ndarray:
-    """Relative track ``^B T_A = (^W T_B)^-1 ^W T_A`` from two tracks in a common frame W.
+    """
+    Relative track ``^B T_A = (^W T_B)^-1 ^W T_A`` from two tracks in a common frame W.
 
     :param link_a: (N, 4, 4) poses of link A in W.
     :param link_b: (N, 4, 4) poses of link B in W (same stamps as link A).
@@ -241,8 +245,11 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 
 def rotations_about_axis(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula for many angles: (N, 3, 3) rotations of ``angles`` [rad] about a unit
-    ``axis`` (3,)."""
+    """
+    Rodrigues' formula for many angles.
+
+    (N, 3, 3) rotations of ``angles`` [rad] about a unit ``axis`` (3,).
+    """
     K = _skew(np.asarray(axis, dtype=float))
     a = np.asarray(angles, dtype=float).reshape(-1, 1, 1)
     return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
@@ -261,7 +268,8 @@ def signed_angles_about_axis(R: np.ndarray, axis: np.ndarray) -> np.ndarray:
 
 
 def minimal_rotations_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest rotations (N, 3, 3) taking each unit vector ``a[i]`` (N, 3) onto unit ``b`` (3,).
+    """
+    Smallest rotations (N, 3, 3) taking each unit vector ``a[i]`` (N, 3) onto unit ``b`` (3,).
 
     Rodrigues with axis ``a x b``; for (nearly) antiparallel pairs a half turn about an axis
     perpendicular to ``b`` is used.
@@ -300,7 +308,8 @@ def perpendicular_basis(n: np.ndarray) -> tuple:
 
 def frame_residuals(R: np.ndarray, p: np.ndarray, R_hat: np.ndarray, p_hat: np.ndarray,
                     sigma_position: float, sigma_rotation: float) -> tuple:
-    """Per-frame residuals of a raw track about a corrected one.
+    """
+    Per-frame residuals of a raw track about a corrected one.
 
     :returns: (rotation angle [rad] (N,), position distance [m] (N,), chi-square (N,)) where the
         chi-square is ``|log(R_hat R^T)|^2 / sigma_rotation^2 + |p_hat - p|^2 / sigma_position^2``.
