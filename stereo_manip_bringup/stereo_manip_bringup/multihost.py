@@ -1,4 +1,5 @@
-"""The peg_in_hole graph split over several machines, simulated with network namespaces.
+"""
+The peg_in_hole graph split over several machines, simulated with network namespaces.
 
 A real cell has the stereo camera on one computer, perception on another and the robot
 controller on a third. :func:`run_graph` starts the demo's nodes (the same
@@ -45,7 +46,10 @@ TRUTH_TOPIC = '/objects/peg/pose_truth'
 def peg_in_hole_placement(camera_rate: float, stereo_on_camera: bool = False,
                           stereo_parameters: Optional[Dict[str, Any]] = None,
                           frame_step: Optional[int] = None) -> Dict[str, List[NodeSpec]]:
-    """The demo's peg_in_hole nodes placed on hosts, the camera free-running at
+    """
+    Place the demo's peg_in_hole nodes on hosts.
+
+    The demo's peg_in_hole nodes placed on hosts, the camera free-running at
     ``camera_rate`` [Hz], playing the scene at its own speed (30 fps nominal) back and forth
     from its first frame (where the localiser is initialised), as the live demo stage does.
 
@@ -87,10 +91,13 @@ DDS_CHOICES = ('multihost_profile', 'fastdds_defaults')
 
 def ros_environment(domain_id: int, over_lan: bool,
                     dds: str = 'multihost_profile') -> Dict[str, str]:
-    """Environment of every participant: one domain; over the simulated LAN the multi-host
-    environment a user gets (``dds='multihost_profile'``) or Fast DDS's defaults over UDPv4
-    (``'fastdds_defaults'``, SUBNET discovery); on one host localhost discovery and Fast DDS
-    defaults (shared memory)."""
+    """
+    Environment of every participant.
+
+    One domain; over the simulated LAN the multi-host environment a user gets
+    (``dds='multihost_profile'``) or Fast DDS's defaults over UDPv4 (``'fastdds_defaults'``, SUBNET
+    discovery); on one host localhost discovery and Fast DDS defaults (shared memory).
+    """
     if dds not in DDS_CHOICES:
         raise ValueError(f'dds must be one of {DDS_CHOICES}, got {dds!r}')
     env = dict(os.environ)
@@ -135,8 +142,11 @@ class _Proc:
 
 
 def _stop_all(procs: List[_Proc], run: GraphRun) -> None:
-    """Stop every process (SIGINT, SIGKILL after 10 s), also when interrupted half-way: a
-    second Ctrl-C or an error while stopping one must not leave the others running."""
+    """
+    Stop every process (SIGINT, SIGKILL after 10 s), also when interrupted half-way.
+
+    a second Ctrl-C or an error while stopping one must not leave the others running.
+    """
     try:
         for p in reversed(procs):
             run.exit_codes[p.name] = p.stop()
@@ -152,7 +162,7 @@ def _stop_all(procs: List[_Proc], run: GraphRun) -> None:
 
 
 def _cpu_seconds(pid: int) -> float:
-    """utime + stime [s] of a running process (NaN once it has gone)."""
+    """Return utime + stime [s] of a running process (NaN once it has gone)."""
     try:
         fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
     except OSError:
@@ -166,7 +176,10 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
               log: Any = print, stop_after_corrected: int = 0,
               extra_env: Optional[Dict[str, Optional[str]]] = None,
               dds: str = 'multihost_profile') -> GraphRun:
-    """Start the graph, then the camera when every perception subscription is matched, listen
+    """
+    Start the graph, then the camera; listen on the controller; stop everything.
+
+    Start the graph, then the camera when every perception subscription is matched, listen
     ``duration`` s on the controller, stop everything (SIGINT, then SIGKILL).
 
     :param placement: host -> nodes (from :func:`peg_in_hole_placement`).
@@ -287,7 +300,10 @@ def _stats(values: Sequence[float]) -> Dict[str, float]:
 
 def summarise(run: GraphRun, warmup: float = 5.0,
               model_points: Optional[np.ndarray] = None) -> Dict[str, Any]:
-    """Pose figures over the window from ``warmup`` s after the first corrected pose to the
+    """
+    Summarise the pose, camera and link figures of a run.
+
+    Pose figures over the window from ``warmup`` s after the first corrected pose to the
     end of the run; camera and link figures from ``warmup`` s after the camera started.
 
     :returns: corrected poses in the window, their rate [Hz] over arrival times, latency
