@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Rendering rate of the synthetic stereo camera: 640x480 pair with full ground truth.
+"""
+Rendering rate of the synthetic stereo camera: 640x480 pair with full ground truth.
 
 Measures ``stereo_depth.synthetic.render`` (both views ray cast from their own centres, texture,
 depth/disparity/occlusion/ids/texcoords truth) on several scenes, and, in the same run, the
@@ -19,10 +20,9 @@ import time
 
 import numpy as np
 import open3d as o3d
-
+from stereo_depth.synthetic import make_scene, render, RenderOptions, StereoCamera
 from stereo_manip_tools.bench_report import goal, write_report
 from stereo_manip_tools.mesh_io import find_model, load_obj
-from stereo_depth.synthetic import make_scene, render, RenderOptions, StereoCamera
 
 SCENES = ('peg_in_hole', 'revolute_pair', 'primitives')
 
@@ -76,8 +76,12 @@ def time_open3d(scene: str, frames: int) -> dict:
 
 
 def max_reprojection_error(scene: str, frames) -> float:
-    """Max over sampled pixels of |projection of back-projected left depth - right pixel whose
-    texcoords match| (same method as the acceptance test)."""
+    """
+    Measure the largest reprojection error over sampled pixels.
+
+    Max over sampled pixels of |projection of back-projected left depth - right pixel whose
+    texcoords match| (same method as the acceptance test).
+    """
     worst = 0.0
     for k in frames:
         _, _, tr = render(scene, k, seed=0)
@@ -112,7 +116,7 @@ def max_reprojection_error(scene: str, frames) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='fewer frames (not for the JSON)')
     args = ap.parse_args()
     load_before = os.getloadavg()

@@ -1,4 +1,5 @@
-"""Benchmark: wrong poses and losses of object_localizer_node in the live graph, against truth.
+"""
+Benchmark: wrong poses and losses of object_localizer_node in the live graph, against truth.
 
 Graph (separate processes from the install tree, as ``make demo`` starts them):
 ``synthetic_camera`` -> ``stereo_depth_node`` (census block matching, 160 disparities) ->
@@ -180,7 +181,7 @@ def run(scene, mode, rate, seconds, frames, log):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     parser.add_argument('--rate', type=float, default=10.0, help='free-running camera rate')
     parser.add_argument('--seconds', type=float, default=45.0, help='free-running duration')
     parser.add_argument('--frames', type=int, default=40, help='triggered frames')

@@ -1,5 +1,8 @@
-"""Peer process for test_interfaces_interprocess: echoes every stereo_manip_msgs message and
-answers every service, so the test exercises both directions across two processes over DDS.
+"""
+Peer process for test_interfaces_interprocess.
+
+Echoes every stereo_manip_msgs message and answers every service, so the test exercises both
+directions across two processes over DDS.
 
 Messages on ``/roundtrip/in/<Name>`` are republished unchanged on ``/roundtrip/out/<Name>``.
 Service ``/roundtrip/<Name>`` answers ``fill_message(Response, 42)`` with ``success`` set to

@@ -1,4 +1,5 @@
-"""pytest plugin of the Noble-pinned job (tests/test_noble_pinned.py).
+"""
+pytest plugin of the Noble-pinned job (tests/test_noble_pinned.py).
 
 The job runs the package tests with Noble's library versions and without ROS (its venv has no
 rclpy or message packages). A test module whose import fails only because a ROS module is
