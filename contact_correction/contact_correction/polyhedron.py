@@ -27,6 +27,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from stereo_manip_tools.mesh_io import find_model, load_obj, PolygonMesh
+from stereo_manip_tools.transforms import perpendicular_basis
 
 __all__ = [
     'Polyhedron',
@@ -223,12 +224,7 @@ def _triangulate_polygon(V: np.ndarray, loop: np.ndarray, normal: np.ndarray) ->
     idx = [int(i) for i in loop]
     if len(idx) == 3:
         return [idx]
-    # 2D basis of the plane
-    u = np.cross(normal, [1.0, 0.0, 0.0])
-    if np.linalg.norm(u) < 0.5:
-        u = np.cross(normal, [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    w = np.cross(normal, u)
+    u, w = perpendicular_basis(normal)   # 2D basis of the plane
     P2 = {i: np.array([V[i] @ u, V[i] @ w]) for i in idx}
 
     def cross2(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:

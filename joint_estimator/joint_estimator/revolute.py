@@ -44,11 +44,12 @@ from dataclasses import dataclass
 from typing import Optional
 
 from joint_estimator.common import (
-    _skew, compose_track, DegenerateMotionError, frame_residuals, JointFit, JointType,
+    compose_track, DegenerateMotionError, frame_residuals, JointFit, JointType,
     minimal_rotations_onto, rotations_about_axis, signed_angles_about_axis, split_track,
     validate_track)
 import numpy as np
 from scipy.optimize import minimize
+from stereo_manip_tools.transforms import skew
 
 __all__ = [
     'eq17_objective',
@@ -281,7 +282,7 @@ def anisotropic_angles(R: np.ndarray, p: np.ndarray, model, q0: np.ndarray,
     Newton steps from ``q0``, a step kept only where it lowers the cost.
     """
     ax = model.axis_in_b
-    K = _skew(ax)
+    K = skew(ax)
     M = model.reference[None] @ np.transpose(R, (0, 2, 1))
     a_r = ((np.trace(M, axis1=1, axis2=2) - np.einsum('i,nij,j->n', ax, M, ax))
            / sigma_rotation ** 2)
@@ -341,7 +342,7 @@ def ml_angles(R: np.ndarray, p: np.ndarray, axis_b: np.ndarray, reference: np.nd
     ``const - (a cos q + b sin q)``, so ``q = atan2(b, a)`` is the exact minimiser.
     """
     ax = axis_b
-    K = _skew(ax)
+    K = skew(ax)
     M = reference[None] @ np.transpose(R, (0, 2, 1))
     trM = np.trace(M, axis1=1, axis2=2)
     lMl = np.einsum('i,nij,j->n', ax, M, ax)

@@ -1,5 +1,9 @@
 """
-Rigid-transform and rotation helpers shared by every stereo_manip package (pure numpy).
+Rigid-transform and rotation helpers shared by every stereo_manip package (numpy).
+
+The one home of the workspace's rotation math: single rotations (``skew``,
+``rotation_about_axis``, ``rotation_log``, ...) and batched ones over (N, 3, 3) stacks
+(``rotations_about_axis``, ``rotation_vectors``, ``minimal_rotations_onto``, ...).
 
 Conventions (REP 103): metres and radians; a pose is a 4x4 homogeneous matrix ``T`` that maps
 points from a child frame into a parent frame, ``p_parent = T[:3, :3] @ p_child + T[:3, 3]``.
@@ -13,7 +17,10 @@ import numpy as np
 __all__ = [
     'skew',
     'rotation_about_axis',
+    'rotations_about_axis',
     'rotation_log',
+    'rotation_vectors',
+    'signed_angles_about_axis',
     'rotation_angle',
     'is_rotation_matrix',
     'nearest_rotation',
@@ -23,6 +30,8 @@ __all__ = [
     'quaternion_from_matrix',
     'matrix_from_quaternion',
     'minimal_rotation_between',
+    'minimal_rotations_onto',
+    'perpendicular_basis',
     'check_transform',
     'pose_from_xyz_quaternion',
 ]
@@ -40,8 +49,18 @@ def rotation_about_axis(axis: np.ndarray, angle: float) -> np.ndarray:
     n = np.linalg.norm(a)
     if n == 0.0:
         raise ValueError('rotation_about_axis: zero-length axis')
-    k = skew(a / n)
-    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+    return rotations_about_axis(a / n, angle)[0]
+
+
+def rotations_about_axis(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """
+    Rodrigues' formula for many angles.
+
+    (N, 3, 3) rotations of ``angles`` [rad] (a scalar or shape (N,)) about a unit ``axis`` (3,).
+    """
+    K = skew(axis)
+    a = np.asarray(angles, dtype=float).reshape(-1, 1, 1)
+    return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
 
 
 def rotation_log(R: np.ndarray) -> np.ndarray:
@@ -61,6 +80,19 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
             axis = -axis
         return axis / np.linalg.norm(axis) * theta
     return w * (theta / (2.0 * np.sin(theta)))
+
+
+def rotation_vectors(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (N, 3) [rad] of rotations (N, 3, 3) (robust near 0 and pi)."""
+    from scipy.spatial.transform import Rotation
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def signed_angles_about_axis(R: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Angle [rad] in (-pi, pi] of rotations (N, 3, 3) known to be about the unit ``axis``."""
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
+    c = (np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.arctan2(0.5 * (w @ axis), c)
 
 
 def rotation_angle(R: np.ndarray) -> float:
@@ -160,6 +192,45 @@ def minimal_rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             perp = np.cross(a, [0.0, 1.0, 0.0])
         return rotation_about_axis(perp, np.pi)
     return rotation_about_axis(c, np.arctan2(s, d))
+
+
+def minimal_rotations_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """
+    Smallest rotations (N, 3, 3) taking each unit vector ``a[i]`` (N, 3) onto unit ``b`` (3,).
+
+    Rodrigues with axis ``a x b``; for (nearly) antiparallel pairs a half turn about an axis
+    perpendicular to ``b`` is used.
+    """
+    a = np.asarray(a, dtype=float)
+    c = np.stack([a[:, 1] * b[2] - a[:, 2] * b[1], a[:, 2] * b[0] - a[:, 0] * b[2],
+                  a[:, 0] * b[1] - a[:, 1] * b[0]], axis=1)
+    s = np.sqrt(np.einsum('ni,ni->n', c, c))
+    d = np.clip(a @ b, -1.0, 1.0)
+    out = np.empty((a.shape[0], 3, 3))
+    ok = s > 1e-12
+    if ok.any():
+        k = c[ok] / s[ok, None]
+        K = np.zeros((k.shape[0], 3, 3))
+        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+        K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+        # sin = s, cos = d (exact, no arctan round trip)
+        out[ok] = np.eye(3) + s[ok, None, None] * K + (1.0 - d[ok, None, None]) * (K @ K)
+    for i in np.flatnonzero(~ok):
+        if d[i] > 0:
+            out[i] = np.eye(3)
+        else:
+            e1, _ = perpendicular_basis(b)
+            out[i] = 2.0 * np.outer(e1, e1) - np.eye(3)
+    return out
+
+
+def perpendicular_basis(n: np.ndarray) -> tuple:
+    """Two unit vectors (3,) completing unit ``n`` to a right-handed orthonormal basis."""
+    n = np.asarray(n, dtype=float)
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    e1 = np.cross(n, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
 
 
 def check_transform(T: np.ndarray, name: str = 'pose', tol: float = 1e-6) -> np.ndarray:

@@ -19,6 +19,7 @@ from typing import Tuple
 import numpy as np
 
 from stereo_manip_tools.mesh_io import PolygonMesh
+from stereo_manip_tools.transforms import perpendicular_basis
 
 __all__ = ['make_noise_tile', 'face_charts', 'triangle_corner_texcoords']
 
@@ -59,10 +60,7 @@ def face_charts(mesh: PolygonMesh, rng: np.random.Generator, tile_size: int,
     A = np.zeros((len(mesh.faces), 2, 3))
     b = np.zeros((len(mesh.faces), 2))
     for i, (f, n) in enumerate(zip(mesh.faces, normals)):
-        ref = np.eye(3)[int(np.argmin(np.abs(n)))]
-        e1 = np.cross(n, ref)
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
+        e1, e2 = perpendicular_basis(n)
         o = mesh.vertices[f[0]]
         A[i, 0], A[i, 1] = e1 / texel_size, e2 / texel_size
         b[i] = -A[i] @ o + rng.uniform(0, tile_size, 2)
