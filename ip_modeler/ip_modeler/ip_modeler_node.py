@@ -31,7 +31,6 @@ from ip_modeler.incremental_qr import STABILIZATION_MODES
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
@@ -41,7 +40,8 @@ from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
     input_qos_descriptor, input_qos_profile, int_descriptor as _int, \
     reject_nonfinite_parameters
-from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
+    spin_until_shutdown
 from visualization_msgs.msg import Marker
 
 __all__ = ['IpModelerNode', 'main']
@@ -230,10 +230,4 @@ def main(args: Optional[List[str]] = None) -> None:
     """Run the node (bad start-up parameters: one line on stderr, exit code 1)."""
     rclpy.init(args=args)
     node = create_node_or_exit(IpModelerNode, 'ip_modeler_node')
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)

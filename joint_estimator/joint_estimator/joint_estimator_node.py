@@ -45,7 +45,6 @@ from nav_msgs.msg import Path
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data, QoSProfile
@@ -58,7 +57,8 @@ from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import (
     float_descriptor as _float, int_descriptor as _int, reject_nonfinite_parameters,
     string_descriptor as _string)
-from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
+    spin_until_shutdown
 from stereo_manip_tools.sync import StampSynchronizer
 from stereo_manip_tools.tf import object_frame, PoseTfPublisher
 from visualization_msgs.msg import Marker
@@ -469,10 +469,4 @@ def main(args=None) -> None:
     """Run the node."""
     rclpy.init(args=args)
     node = create_node_or_exit(JointEstimatorNode, 'joint_estimator_node')
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)

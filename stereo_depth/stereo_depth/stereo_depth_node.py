@@ -48,7 +48,6 @@ from typing import Any, Dict, Optional, Tuple
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, RegionOfInterest
@@ -61,7 +60,8 @@ from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import bool_descriptor, float_descriptor, \
     INPUT_QOS_CHOICES, input_qos_descriptor, input_qos_profile, int_descriptor, \
     reject_nonfinite_parameters, string_descriptor
-from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
+    spin_until_shutdown
 from stereo_manip_tools.sync import StampSynchronizer
 from stereo_manip_tools.tf import publish_camera_mount
 from stereo_msgs.msg import DisparityImage
@@ -587,10 +587,4 @@ class StereoDepthNode(Node):
 def main(args=None):
     rclpy.init(args=args)
     node = create_node_or_exit(StereoDepthNode, 'stereo_depth_node')
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)

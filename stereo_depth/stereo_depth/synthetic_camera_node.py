@@ -40,7 +40,6 @@ from rcl_interfaces.msg import (
     FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult)
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Empty, Header
@@ -51,6 +50,7 @@ from stereo_manip_tools.conversions import (
     camera_info_from_parameters, matrix_to_pose_stamped, numpy_to_image,
     StereoCameraParameters)
 from stereo_manip_tools.diagnostics import NodeDiagnostics
+from stereo_manip_tools.robustness import spin_until_shutdown
 from stereo_msgs.msg import DisparityImage
 
 __all__ = ['SyntheticCameraNode', 'main', 'SOURCES', 'ENCODINGS', 'PLAYBACKS', 'scene_frame',
@@ -476,13 +476,7 @@ def main(args=None):
         print(f'[synthetic_camera] refused to start: {exc}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         sys.exit(2)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)
 
 
 if __name__ == '__main__':

@@ -25,8 +25,10 @@ from typing import Any, Callable, Dict, Optional, Sequence, TypeVar
 
 import rclpy
 from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
 
-__all__ = ['InputRejections', 'STARTUP_ERRORS', 'create_node_or_exit', 'init_or_exit']
+__all__ = ['InputRejections', 'STARTUP_ERRORS', 'create_node_or_exit', 'init_or_exit',
+           'spin_until_shutdown']
 
 #: Exceptions a node constructor raises for bad start-up configuration.
 STARTUP_ERRORS = (ParameterException, ValueError, TypeError, OSError, LookupError)
@@ -122,3 +124,18 @@ def create_node_or_exit(factory: Callable[..., NodeT], prog: str, *args: Any,
     except STARTUP_ERRORS as exc:
         _fail(prog, exc)
         raise  # unreachable: _fail exits
+
+
+def spin_until_shutdown(node: Any) -> None:
+    """
+    Spin ``node`` until Ctrl-C or an external shutdown, then destroy it and shut rclpy down.
+
+    The end of every node's ``main()`` (the Jazzy ``demo_nodes_py`` idiom).
+    """
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
