@@ -55,7 +55,7 @@ from stereo_manip_tools.parameters import bool_descriptor as _bool, \
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
     spin_until_shutdown
 from stereo_manip_tools.tf import object_frame, PoseTfPublisher
-from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
+from stereo_manip_tools.transforms import pose_from_xyz_quaternion
 
 __all__ = ['ContactCorrectionNode', 'main', 'model_path_problem']
 
@@ -91,11 +91,7 @@ def static_pose(values: List[float]) -> np.ndarray:
 
     :raises ValueError: wrong length, non-finite values or a zero quaternion.
     """
-    v = np.asarray(values, dtype=float)
-    if v.shape != (7,) or not np.all(np.isfinite(v)):
-        raise ValueError(f'fixed_pose_static must be 7 finite numbers [x y z qx qy qz qw], '
-                         f'got {list(values)}')
-    return make_transform(matrix_from_quaternion(v[3:]), v[:3])
+    return pose_from_xyz_quaternion(values, 'fixed_pose_static')
 
 
 class ContactCorrectionNode(Node):

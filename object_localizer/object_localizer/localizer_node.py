@@ -46,7 +46,7 @@ from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_
     string_descriptor
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 from stereo_manip_tools.tf import PoseTfPublisher
-from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
+from stereo_manip_tools.transforms import pose_from_xyz_quaternion
 
 __all__ = ['ObjectLocalizerNode', 'main']
 
@@ -160,9 +160,8 @@ class ObjectLocalizerNode(Node):
             tracker = ObjectTracker(model, replace(self._settings(), static=name in static),
                                     acquirer=acquirer)
             if initial is not None:
-                x, y, z, qx, qy, qz, qw = initial[7 * k:7 * k + 7]
-                tracker.reset(make_transform(matrix_from_quaternion([qx, qy, qz, qw]),
-                                             [x, y, z]))
+                tracker.reset(pose_from_xyz_quaternion(initial[7 * k:7 * k + 7],
+                                                       f'initial_poses of {name}'))
             self.trackers[name] = tracker
             self.pose_pubs[name] = self.create_publisher(PoseStamped, f'objects/{name}/pose', 10)
             self.status_pubs[name] = self.create_publisher(TrackStatus,

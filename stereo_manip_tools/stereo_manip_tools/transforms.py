@@ -249,10 +249,10 @@ def check_transform(T: np.ndarray, name: str = 'pose', tol: float = 1e-6) -> np.
 
 def pose_from_xyz_quaternion(values, name: str = 'pose') -> np.ndarray:
     """
-    4x4 pose of the parameter form ``[x, y, z, qx, qy, qz, qw]``.
+    Parse a pose parameter ``[x, y, z, qx, qy, qz, qw]`` into a 4x4 pose.
 
-    4x4 pose of the parameter form ``[x, y, z, qx, qy, qz, qw]`` (metres; quaternion in ROS
-    order, normalised here).
+    The one parser of this parameter form in the workspace: metres; quaternion in ROS order,
+    normalised here.
 
     :raises ValueError: naming ``name``: not 7 numbers, non-finite, or a zero quaternion.
     """
