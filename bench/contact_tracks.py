@@ -43,7 +43,8 @@ from contact_correction.correction import correct_pose  # noqa: E402
 from contact_correction.optimal_correction import (  # noqa: E402
     constraint_directions, constraint_matrix)
 from contact_correction.recognition import RecognitionOptions  # noqa: E402
-from contact_correction.tracks import make_tracks, noisy_track, track_models  # noqa: E402
+from contact_correction.tracks import equivalent_relations as equivalent, make_tracks, \
+    noisy_track, track_models  # noqa: E402
 from contact_correction.trajectory import ContactCorrector, correct_trajectory  # noqa: E402
 import numpy as np  # noqa: E402
 from stereo_manip_tools.bench_report import goal, write_report  # noqa: E402
@@ -51,26 +52,6 @@ from stereo_manip_tools.bench_report import goal, write_report  # noqa: E402
 I4 = np.eye(4)
 LEVELS = [('1mm_1deg', 1e-3, np.deg2rad(1.0)), ('1.5mm_2deg', 1.5e-3, np.deg2rad(2.0))]
 METHODS = ('recognised_offline', 'recognised_online', 'peer_per_frame_detection')
-
-
-def equivalent(m, f, T_true, truth, pairs) -> bool:
-    """Check that ``pairs`` holds at the true pose and spans the true constraints."""
-    if not truth:
-        return not pairs
-    if not pairs:
-        return False
-    g = evaluate_contacts(m, f, T_true, list(pairs))
-    if np.abs(g.distances).max() > 1e-6:
-        return False
-    s = np.array([1.0 / m.size] * 3 + [1.0] * 3)
-    A1 = constraint_matrix(m, f, T_true, list(truth))[0] * s
-    A2 = constraint_matrix(m, f, T_true, list(pairs))[0] * s
-
-    def rank(A):
-        sv = np.linalg.svd(A, compute_uv=False)
-        return int(np.count_nonzero(sv > 1e-6 * sv[0]))
-    r1, r2 = rank(A1), rank(A2)
-    return r1 == r2 == rank(np.vstack([A1, A2]))
 
 
 def add_error(m, T_est_rel, T_true_rel) -> float:

@@ -26,10 +26,13 @@ from typing import Callable, Dict, List, Tuple
 import numpy as np
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
+from .contact_relation import evaluate_contacts
+from .optimal_correction import constraint_matrix
 from .polyhedron import load_polyhedron, Polyhedron
 from .shapes import t_peg_mesh, t_slot_block_mesh
 
-__all__ = ['Track', 'track_models', 'make_tracks', 'noisy_track', 'correlated_noise']
+__all__ = ['Track', 'track_models', 'make_tracks', 'noisy_track', 'correlated_noise',
+           'equivalent_relations']
 
 
 @dataclass
@@ -159,3 +162,26 @@ def noisy_track(track: Track, rng: np.random.Generator, sigma_t: float, sigma_r:
         obs[k, :3, :3] = Rn @ true[k, :3, :3]
         obs[k, :3, 3] = true[k, :3, 3] + et[k]
     return T_fixed, true, obs
+
+
+def equivalent_relations(m: Polyhedron, f: Polyhedron, T_true: np.ndarray, truth, pairs) -> bool:
+    """
+    Check that ``pairs`` holds at the true pose and spans the true relation's constraints.
+
+    How the tests and the benchmark score a recognised relation against a track's truth: every
+    pair of ``pairs`` is in contact at ``T_true`` (4x4, moving in fixed frame) and its constraint
+    matrix has the rank of the truth's and of both stacked (translation columns scaled by the
+    moving object's size).
+    """
+    if not truth or not pairs:
+        return not truth and not pairs
+    if np.abs(evaluate_contacts(m, f, T_true, list(pairs)).distances).max() > 1e-6:
+        return False
+    s = np.array([1.0 / m.size] * 3 + [1.0] * 3)
+    A1 = constraint_matrix(m, f, T_true, list(truth))[0] * s
+    A2 = constraint_matrix(m, f, T_true, list(pairs))[0] * s
+
+    def rank(A):
+        sv = np.linalg.svd(A, compute_uv=False)
+        return int(np.count_nonzero(sv > 1e-6 * sv[0]))
+    return rank(A1) == rank(A2) == rank(np.vstack([A1, A2]))

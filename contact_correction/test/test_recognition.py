@@ -18,7 +18,8 @@ from contact_correction.polyhedron import check_model_units, load_polyhedron
 from contact_correction.recognition import (
     Hypothesis, recognise_track, RecognitionOptions, RelationRecognizer)
 from contact_correction.shapes import t_peg_mesh, t_slot_block_mesh
-from contact_correction.tracks import make_tracks, noisy_track, track_models
+from contact_correction.tracks import equivalent_relations as equivalent, make_tracks, \
+    noisy_track, track_models
 from contact_correction.trajectory import (
     ContactCorrector, correct_recognised, correct_trajectory)
 import numpy as np
@@ -37,22 +38,6 @@ def models():
 @pytest.fixture(scope='module')
 def tracks(models):
     return {t.name: t for t in make_tracks(models)}
-
-
-def equivalent(m, f, T_true, truth, pairs):
-    """``pairs`` holds at the true pose and spans the true relation's constraints."""
-    if not truth or not pairs:
-        return not truth and not pairs
-    if np.abs(evaluate_contacts(m, f, T_true, list(pairs)).distances).max() > 1e-6:
-        return False
-    s = np.array([1.0 / m.size] * 3 + [1.0] * 3)
-    A1 = constraint_matrix(m, f, T_true, list(truth))[0] * s
-    A2 = constraint_matrix(m, f, T_true, list(pairs))[0] * s
-
-    def rank(A):
-        sv = np.linalg.svd(A, compute_uv=False)
-        return int(np.count_nonzero(sv > 1e-6 * sv[0]))
-    return rank(A1) == rank(A2) == rank(np.vstack([A1, A2]))
 
 
 def test_t_peg_and_slot_block_are_closed_solids_inserted_at_identity(models):
