@@ -8,7 +8,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 from stereo_depth.synthetic import (
-    look_at, make_scene, render, RenderOptions, SCENES, StereoCamera, StereoRenderer)
+    look_at, make_scene, render, RenderOptions, reprojection_errors, SCENES, StereoCamera,
+    StereoRenderer)
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import invert_transform, make_transform, rotation_about_axis
 
@@ -18,52 +19,10 @@ FRAMES = [('peg_in_hole', 10), ('peg_in_hole', 60), ('peg_in_hole', 100),
           ('primitives', 45)]
 
 
-def _reprojection_errors(truth, n=400, seed=0):
-    """
-    Reprojection distances [px] of the left depth into the right image.
-
-    Distance [px] between the projection into the right camera of the back-projected left
-    depth and the right-image location whose texture coordinates equal the left pixel's.
-    """
-    cam = truth['camera']
-    K, P_r = cam['K'], cam['P_right']
-    H, W = truth['depth'].shape
-    ok = truth['valid'] & ~truth['occlusion']
-    vs, us = np.nonzero(ok)
-    rng = np.random.default_rng(seed)
-    pick = rng.permutation(len(us))
-    errs = []
-    for i in pick:
-        u, v = us[i], vs[i]
-        Z = float(truth['depth'][v, u])
-        X = Z * np.linalg.solve(K, [u, v, 1.0])
-        x = P_r @ np.append(X, 1.0)
-        ur, vr = x[0] / x[2], x[1] / x[2]
-        u0, v0 = int(np.floor(ur)), int(round(vr))
-        cols, rows = np.arange(u0 - 1, u0 + 3), np.arange(v0 - 1, v0 + 2)
-        if cols[0] < 0 or cols[-1] >= W or rows[0] < 0 or rows[-1] >= H:
-            continue
-        oid = truth['object_id_right'][np.ix_(rows, cols)]
-        fid = truth['face_id_right'][np.ix_(rows, cols)]
-        if np.any(oid != truth['object_id'][v, u]) or np.any(fid != truth['face_id'][v, u]):
-            continue  # the neighbourhood crosses a face boundary: no local affine model
-        # Texture coordinates are a smooth (projective) function of the pixel on a face: fit
-        # it locally and solve for the right pixel carrying the left pixel's coordinates.
-        gu, gv = np.meshgrid(cols, rows)
-        A = np.column_stack([gu.ravel(), gv.ravel(), np.ones(gu.size)])
-        tc = truth['texcoords_right'][np.ix_(rows, cols)].reshape(-1, 2).astype(np.float64)
-        coef, *_ = np.linalg.lstsq(A, tc, rcond=None)
-        q = np.linalg.solve(coef[:2].T, truth['texcoords'][v, u].astype(np.float64) - coef[2])
-        errs.append(np.hypot(q[0] - ur, q[1] - vr))
-        if len(errs) >= n:
-            break
-    return np.array(errs)
-
-
 @pytest.mark.parametrize('scene,frame', FRAMES)
 def test_left_depth_reprojects_onto_same_surface_point_in_right(scene, frame):
     _, _, truth = render(scene, frame, seed=7)
-    errs = _reprojection_errors(truth)
+    errs = reprojection_errors(truth)
     assert len(errs) >= 200, f'only {len(errs)} testable pixels'
     assert errs.max() < 0.05, f'max reprojection error {errs.max():.4f} px'
 
@@ -76,7 +35,7 @@ def test_reprojection_check_detects_a_wrong_baseline():
     cam['P_right'] = cam['P_right'].copy()
     cam['P_right'][0, 3] *= 1.01
     bad['camera'] = cam
-    assert _reprojection_errors(bad).max() > 0.2
+    assert reprojection_errors(bad).max() > 0.2
 
 
 @pytest.mark.parametrize('scene', SCENES)

@@ -21,12 +21,12 @@ from stereo_manip_tools.mesh_io import find_model, load_obj
 
 from .camera import look_at, StereoCamera
 from .real_images import load_motorcycle, load_stereo_files, RealStereoPair
-from .renderer import RenderOptions, StereoRenderer
+from .renderer import RenderOptions, reprojection_errors, StereoRenderer
 from .scenes import make_scene, Scene, SCENES
 
 __all__ = ['render', 'SyntheticStereo', 'StereoCamera', 'RenderOptions', 'StereoRenderer',
            'Scene', 'SCENES', 'make_scene', 'look_at', 'load_motorcycle', 'load_stereo_files',
-           'RealStereoPair']
+           'RealStereoPair', 'reprojection_errors']
 
 
 class SyntheticStereo:

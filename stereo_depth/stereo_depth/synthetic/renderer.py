@@ -52,7 +52,7 @@ from .camera import StereoCamera
 from .raster import colorize, occlusion_mask, quantize, rasterize, shade, triangle_setup
 from .texture import face_charts, make_noise_tile, triangle_corner_texcoords
 
-__all__ = ['RenderOptions', 'StereoRenderer']
+__all__ = ['RenderOptions', 'StereoRenderer', 'reprojection_errors']
 
 
 @dataclass(frozen=True)
@@ -313,3 +313,47 @@ class StereoRenderer:
             'camera': cam.as_dict(),
         }
         return left_img, right_img, truth
+
+
+def reprojection_errors(truth: dict, n: int = 400, seed: int = 0) -> np.ndarray:
+    """
+    Reprojection distances [px] of the left depth into the right image.
+
+    Distance [px] between the projection into the right camera of the back-projected left
+    depth and the right-image location whose texture coordinates equal the left pixel's, for
+    up to ``n`` random valid, unoccluded left pixels (``seed``) of a rendered ``truth``; the
+    geometry check of the acceptance test and of ``bench/camera_render_rate.py``.
+    """
+    cam = truth['camera']
+    K, P_r = cam['K'], cam['P_right']
+    H, W = truth['depth'].shape
+    ok = truth['valid'] & ~truth['occlusion']
+    vs, us = np.nonzero(ok)
+    rng = np.random.default_rng(seed)
+    pick = rng.permutation(len(us))
+    errs = []
+    for i in pick:
+        u, v = us[i], vs[i]
+        Z = float(truth['depth'][v, u])
+        X = Z * np.linalg.solve(K, [u, v, 1.0])
+        x = P_r @ np.append(X, 1.0)
+        ur, vr = x[0] / x[2], x[1] / x[2]
+        u0, v0 = int(np.floor(ur)), int(round(vr))
+        cols, rows = np.arange(u0 - 1, u0 + 3), np.arange(v0 - 1, v0 + 2)
+        if cols[0] < 0 or cols[-1] >= W or rows[0] < 0 or rows[-1] >= H:
+            continue
+        oid = truth['object_id_right'][np.ix_(rows, cols)]
+        fid = truth['face_id_right'][np.ix_(rows, cols)]
+        if np.any(oid != truth['object_id'][v, u]) or np.any(fid != truth['face_id'][v, u]):
+            continue  # the neighbourhood crosses a face boundary: no local affine model
+        # Texture coordinates are a smooth (projective) function of the pixel on a face: fit
+        # it locally and solve for the right pixel carrying the left pixel's coordinates.
+        gu, gv = np.meshgrid(cols, rows)
+        A = np.column_stack([gu.ravel(), gv.ravel(), np.ones(gu.size)])
+        tc = truth['texcoords_right'][np.ix_(rows, cols)].reshape(-1, 2).astype(np.float64)
+        coef, *_ = np.linalg.lstsq(A, tc, rcond=None)
+        q = np.linalg.solve(coef[:2].T, truth['texcoords'][v, u].astype(np.float64) - coef[2])
+        errs.append(np.hypot(q[0] - ur, q[1] - vr))
+        if len(errs) >= n:
+            break
+    return np.array(errs)
