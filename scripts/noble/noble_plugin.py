@@ -13,7 +13,7 @@ import re
 import pytest
 
 # top-level modules that come with ROS, not with the Python libraries the job pins
-ROS_MODULE = re.compile(r'^(rclpy|rosidl_\w+|rpyutils|ament_index_python|launch\w*|\w+_msgs|'
+ROS_MODULE = re.compile(r'^(rclpy|rosidl_\w+|rpyutils|ament_\w+|launch\w*|\w+_msgs|'
                         r'\w+_interfaces|rosbags)$')
 MISSING = re.compile(r"No module named '([\w.]+)'")
 
