@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-from pathlib import Path
 import re
 import struct
 import sys
@@ -44,6 +43,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from stereo_manip_tools.bench_report import goal, results_dir, write_report
+from stereo_manip_tools.processes import process_cpu_seconds
 
 # What each scene's graph is judged on: the topic carrying its final output, and the topics
 # whose arrival means "the frame reached the last node's input".
@@ -76,15 +76,6 @@ def cdr_stamp_ns(data: bytes) -> int:
     endian = '<' if data[1] == 1 else '>'
     sec, nsec = struct.unpack_from(endian + 'iI', data, 4)
     return sec * 1_000_000_000 + nsec
-
-
-def proc_cpu_s(pid: int) -> float:
-    """Return utime + stime [s] of a process from /proc (NaN once it has gone)."""
-    try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    except OSError:
-        return float('nan')
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 def percentiles(values: List[float]) -> Dict[str, float]:
@@ -198,13 +189,13 @@ def run_graph(scene: str, rate: float, seconds: float, peer: bool = False,
                 p.output()[-2000:] for s, p in procs if s.node_name in dead))
         out['startup_s'] = time.monotonic() - t_start
         spin_until(observer, lambda: False, settle)          # JIT/caches warm, queues empty
-        cpu0 = {s.node_name: proc_cpu_s(p.process.pid) for s, p in procs}
+        cpu0 = {s.node_name: process_cpu_seconds(p.process.pid) for s, p in procs}
         own0 = time.process_time()
         load0 = os.getloadavg()
         w0_ns, w0 = time.time_ns(), time.monotonic()
         spin_until(observer, lambda: False, seconds)
         w1_ns, w1 = time.time_ns(), time.monotonic()
-        cpu1 = {s.node_name: proc_cpu_s(p.process.pid) for s, p in procs}
+        cpu1 = {s.node_name: process_cpu_seconds(p.process.pid) for s, p in procs}
         own1 = time.process_time()
         load1 = os.getloadavg()
         spin_until(observer, lambda: False, 2.0)             # late outputs of the last frames

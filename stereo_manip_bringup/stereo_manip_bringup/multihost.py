@@ -34,6 +34,7 @@ import numpy as np
 
 from stereo_manip_bringup.demo import NodeSpec, STAGES
 from stereo_manip_bringup.deployment import multihost_environment
+from stereo_manip_tools.processes import process_cpu_seconds
 
 __all__ = ['HOSTS', 'peg_in_hole_placement', 'run_graph', 'summarise', 'GraphRun',
            'CORRECTED_TOPIC', 'TRUTH_TOPIC', 'ros_environment', 'DDS_CHOICES']
@@ -161,15 +162,6 @@ def _stop_all(procs: List[_Proc], run: GraphRun) -> None:
                     pass
 
 
-def _cpu_seconds(pid: int) -> float:
-    """Return utime + stime [s] of a running process (NaN once it has gone)."""
-    try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    except OSError:
-        return float('nan')
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
-
-
 def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: int,
               lan: Any = None, controller_host: str = 'controller',
               ready_timeout: float = 120.0, log_dir: Optional[Path] = None,
@@ -250,7 +242,7 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
                            {**env, **getattr(spec, 'env', {})}, log_dir)
             procs.append(camera)
         t_end = time.monotonic() + duration
-        cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
+        cpu0 = {p.name: process_cpu_seconds(p.popen.pid) for p in procs}
         t_cpu0 = time.monotonic()
         next_sample = time.monotonic()
         while time.monotonic() < t_end:
@@ -268,7 +260,7 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
             time.sleep(0.1)
         run.end_wall_ns = time.time_ns()
         elapsed = time.monotonic() - t_cpu0
-        run.cpu_fraction = {p.name: (_cpu_seconds(p.popen.pid) - cpu0.get(p.name, 0.0))
+        run.cpu_fraction = {p.name: (process_cpu_seconds(p.popen.pid) - cpu0.get(p.name, 0.0))
                             / elapsed for p in procs}
         if lan is not None:
             run.counters = {h: {**lan.counters(h), **lan.ip_stats(h)} for h in lan.hosts}

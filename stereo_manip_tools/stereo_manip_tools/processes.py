@@ -22,7 +22,8 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-__all__ = ['make_node', 'shutdown_node', 'spin_until', 'executable_path', 'ExecutableProcess']
+__all__ = ['make_node', 'shutdown_node', 'spin_until', 'executable_path', 'ExecutableProcess',
+           'process_cpu_seconds']
 
 
 def make_node(name: Optional[str] = None) -> Node:
@@ -146,3 +147,12 @@ class ExecutableProcess:
             os.unlink(self._log.name)
         except OSError:
             pass
+
+
+def process_cpu_seconds(pid: int) -> float:
+    """Return utime + stime [s] of a process from /proc (NaN once it has gone)."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    except (OSError, IndexError, ValueError):
+        return float('nan')
