@@ -23,7 +23,7 @@ from joint_estimator.common import (
     DegenerateMotionError, JointType, minimal_rotations_onto, perpendicular_basis,
     rotation_vectors, rotations_about_axis)
 from joint_estimator.revolute import (
-    AxisLineModel, correct_orientations, DEFAULT_MIN_ROTATION_RANGE, fit_axis_directions,
+    axis_directions_or_raise, AxisLineModel, DEFAULT_MIN_ROTATION_RANGE, fit_axis_directions,
     fit_revolute, ml_angles, rotation_range_from_singular_values, solve_axis_points)
 import numpy as np
 
@@ -208,14 +208,7 @@ def fit_cylindrical(R: np.ndarray, p: np.ndarray,
 
     :raises DegenerateMotionError: rotation range below ``min_rotation_range`` [rad].
     """
-    a, b, S = fit_axis_directions(R)
-    rng = rotation_range_from_singular_values(S)
-    if rng < min_rotation_range or S[0] - S[1] <= 1e-12 * S[0]:
-        raise DegenerateMotionError(
-            f'rotation range {np.rad2deg(rng):.2f} deg is below '
-            f'{np.rad2deg(min_rotation_range):.2f}'
-            ' deg: the motion does not define a cylindrical axis')
-    R_hat = correct_orientations(R, a, b)
+    a, b, R_hat, rng = axis_directions_or_raise(R, min_rotation_range, 'cylindrical')
     P = np.eye(3) - np.outer(b, b)
     PR = P @ R_hat                                   # (N, 3, 3)
     AtA = np.zeros((6, 6))

@@ -153,6 +153,24 @@ def rotation_range_from_singular_values(S: np.ndarray) -> float:
     return float(np.sqrt(24.0 * max(0.0, 1.0 - S[1] / S[0])))
 
 
+def axis_directions_or_raise(R: np.ndarray, min_rotation_range: float, kind: str) -> tuple:
+    """
+    Fit the axis directions by Eq. (17) and correct the orientations about them.
+
+    :returns: ``(^A l, ^B l, corrected orientations (N, 3, 3), rotation range [rad])``.
+    :raises DegenerateMotionError: rotation range below ``min_rotation_range`` [rad] (the
+        motion does not define a ``kind`` axis).
+    """
+    a, b, S = fit_axis_directions(R)
+    rng = rotation_range_from_singular_values(S)
+    if rng < min_rotation_range or S[0] - S[1] <= 1e-12 * S[0]:
+        raise DegenerateMotionError(
+            f'rotation range {np.rad2deg(rng):.2f} deg is below '
+            f'{np.rad2deg(min_rotation_range):.2f}'
+            f' deg: the motion does not define a {kind} axis')
+    return a, b, correct_orientations(R, a, b), rng
+
+
 def correct_orientations(R: np.ndarray, axis_in_a: np.ndarray,
                          axis_in_b: np.ndarray) -> np.ndarray:
     """
@@ -368,14 +386,7 @@ def fit_revolute(R: np.ndarray, p: np.ndarray,
     :param min_rotation_range: below this equivalent rotation range [rad] the axis is undefined.
     :raises DegenerateMotionError: rotation range below ``min_rotation_range``.
     """
-    a, b, S = fit_axis_directions(R)
-    rng = rotation_range_from_singular_values(S)
-    if rng < min_rotation_range or S[0] - S[1] <= 1e-12 * S[0]:
-        raise DegenerateMotionError(
-            f'rotation range {np.rad2deg(rng):.2f} deg is below '
-            f'{np.rad2deg(min_rotation_range):.2f}'
-            ' deg: the motion does not define a revolute axis')
-    R_hat = correct_orientations(R, a, b)
+    a, b, R_hat, rng = axis_directions_or_raise(R, min_rotation_range, 'revolute')
     ca, cb, _, _ = solve_axis_points(R_hat, p)
     R0 = minimal_rotations_onto(a[None], b)[0]
     return RevoluteModel(a, b, ca, cb, R0, rng)
