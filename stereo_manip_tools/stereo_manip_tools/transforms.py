@@ -72,8 +72,9 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
     if theta < 1e-7:
         return 0.5 * w
     if np.pi - theta < 1e-4:
-        # near pi: the axis is the dominant column of (R + I) / 2 = a a^T (approximately)
-        B = (R + np.eye(3)) / 2.0
+        # near pi: the symmetric part of R is cos(theta) I + (1 - cos(theta)) a a^T, so a a^T
+        # follows exactly (the skew part, O(pi - theta), is left out)
+        B = ((R + R.T) / 2.0 - cos_theta * np.eye(3)) / (1.0 - cos_theta)
         i = int(np.argmax(np.diag(B)))
         axis = B[:, i] / np.sqrt(max(B[i, i], 1e-300))
         if np.dot(axis, w) < 0:
