@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Rendering rate of the synthetic stereo camera: 640x480 pair with full ground truth.
+"""
+Rendering rate of the synthetic stereo camera: 640x480 pair with full ground truth.
 
 Measures ``stereo_depth.synthetic.render`` (both views ray cast from their own centres, texture,
 depth/disparity/occlusion/ids/texcoords truth) on several scenes, and, in the same run, the
@@ -19,10 +20,10 @@ import time
 
 import numpy as np
 import open3d as o3d
-
+from stereo_depth.synthetic import make_scene, render, RenderOptions, reprojection_errors, \
+    StereoCamera
 from stereo_manip_tools.bench_report import goal, write_report
 from stereo_manip_tools.mesh_io import find_model, load_obj
-from stereo_depth.synthetic import make_scene, render, RenderOptions, StereoCamera
 
 SCENES = ('peg_in_hole', 'revolute_pair', 'primitives')
 
@@ -76,43 +77,21 @@ def time_open3d(scene: str, frames: int) -> dict:
 
 
 def max_reprojection_error(scene: str, frames) -> float:
-    """Max over sampled pixels of |projection of back-projected left depth - right pixel whose
-    texcoords match| (same method as the acceptance test)."""
+    """
+    Measure the largest reprojection error over sampled pixels.
+
+    Max over sampled pixels of |projection of back-projected left depth - right pixel whose
+    texcoords match| (same method as the acceptance test).
+    """
     worst = 0.0
     for k in frames:
         _, _, tr = render(scene, k, seed=0)
-        K, P = tr['camera']['K'], tr['camera']['P_right']
-        H, W = tr['depth'].shape
-        vs, us = np.nonzero(tr['valid'] & ~tr['occlusion'])
-        rng = np.random.default_rng(k)
-        n = 0
-        for i in rng.permutation(len(us)):
-            u, v = us[i], vs[i]
-            X = tr['depth'][v, u] * np.linalg.solve(K, [u, v, 1.0])
-            x = P @ np.append(X, 1.0)
-            ur, vr = x[0] / x[2], x[1] / x[2]
-            u0, v0 = int(np.floor(ur)), int(round(vr))
-            cols, rows = np.arange(u0 - 1, u0 + 3), np.arange(v0 - 1, v0 + 2)
-            if cols[0] < 0 or cols[-1] >= W or rows[0] < 0 or rows[-1] >= H:
-                continue
-            same = (tr['object_id_right'][np.ix_(rows, cols)] == tr['object_id'][v, u]) & \
-                (tr['face_id_right'][np.ix_(rows, cols)] == tr['face_id'][v, u])
-            if not same.all():
-                continue
-            gu, gv = np.meshgrid(cols, rows)
-            A = np.column_stack([gu.ravel(), gv.ravel(), np.ones(gu.size)])
-            tc = tr['texcoords_right'][np.ix_(rows, cols)].reshape(-1, 2).astype(float)
-            c, *_ = np.linalg.lstsq(A, tc, rcond=None)
-            q = np.linalg.solve(c[:2].T, tr['texcoords'][v, u].astype(float) - c[2])
-            worst = max(worst, float(np.hypot(q[0] - ur, q[1] - vr)))
-            n += 1
-            if n >= 300:
-                break
+        worst = max(worst, float(reprojection_errors(tr, n=300, seed=k).max(initial=0.0)))
     return worst
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='fewer frames (not for the JSON)')
     args = ap.parse_args()
     load_before = os.getloadavg()

@@ -1,4 +1,5 @@
-"""Benchmark: vision error correction with contact relations (chapter Section 3, issue 5).
+"""
+Benchmark: vision error correction with contact relations (chapter Section 3, issue 5).
 
 Ground-truth contact configurations on the shipped models (peg, hole_block, slot_block, table,
 cube) are perturbed with pose noise sigma_t in {0.5, 1, 2, 5} mm and sigma_r in {0.5, 1, 2} deg
@@ -25,14 +26,13 @@ from typing import Dict, List
 # this script is named like the package it measures: keep its own directory off the import path
 sys.path = [p for p in sys.path if Path(p or '.').resolve() != Path(__file__).resolve().parent]
 
-import numpy as np  # noqa: E402
-
 from contact_correction.contact_relation import (  # noqa: E402
     detect_contact_relation, pair_key, penetration_depth)
 from contact_correction.correction import correct_pose  # noqa: E402
 from contact_correction.optimal_correction import (  # noqa: E402
     constraint_directions, constraint_matrix)
 from contact_correction.polyhedron import load_polyhedron  # noqa: E402
+import numpy as np  # noqa: E402
 from stereo_manip_tools.bench_report import goal, write_report  # noqa: E402
 from stereo_manip_tools.transforms import (  # noqa: E402
     make_transform, rotation_about_axis, rotation_log)
@@ -52,7 +52,7 @@ def about_point(R, p):
 
 
 def configurations(models) -> Dict[str, tuple]:
-    """name -> (moving, fixed, list of true relative poses)."""
+    """Map a name to (moving, fixed, list of true relative poses)."""
     peg, cube, table = models['peg'], models['cube'], models['table']
     hole, slot = models['hole_block'], models['slot_block']
     out = {}
@@ -296,7 +296,7 @@ def summarise(rows: List[dict], per_config: Dict[str, dict], quick: bool) -> Non
         error_decomposition_rms=table,
         relation_detection={'overall': {'precision': tp / max(tp + fp, 1),
                                         'recall': tp / max(tp + fn, 1)}, **detection},
-        timing_ms={'note': 'wall = perf_counter; cpu = this thread\'s CPU time (what the frame '
+        timing_ms={'note': "wall = perf_counter; cpu = this thread's CPU time (what the frame "
                            'costs without preemption by other processes on the shared machine; '
                            'see settings.load_average_at_end)',
                    'pipeline_wall_mean_le8_pairs': t_small,
@@ -311,7 +311,7 @@ def summarise(rows: List[dict], per_config: Dict[str, dict], quick: bool) -> Non
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='one sigma pair, few trials')
     run(ap.parse_args().quick)
 

@@ -1,4 +1,5 @@
-"""Benchmark: contact relation recognition and correction on noisy assembly tracks (issue 13).
+"""
+Benchmark: contact relation recognition and correction on noisy assembly tracks (issue 13).
 
 Tracks (``contact_correction.tracks``): a T-shaped peg slid into a T-slotted block (inserted
 flush: the peg's large faces coplanar with the block's) and pulled back out or up, the shipped
@@ -38,41 +39,21 @@ from typing import Dict, List
 
 sys.path = [p for p in sys.path if Path(p or '.').resolve() != Path(__file__).resolve().parent]
 
-import numpy as np  # noqa: E402
-
 from contact_correction.contact_relation import (  # noqa: E402
     detect_contact_relation, evaluate_contacts, penetration_depth, relative_pose)
 from contact_correction.correction import correct_pose  # noqa: E402
 from contact_correction.optimal_correction import (  # noqa: E402
     constraint_directions, constraint_matrix)
 from contact_correction.recognition import RecognitionOptions  # noqa: E402
-from contact_correction.tracks import make_tracks, noisy_track, track_models  # noqa: E402
+from contact_correction.tracks import equivalent_relations as equivalent, make_tracks, \
+    noisy_track, track_models  # noqa: E402
 from contact_correction.trajectory import ContactCorrector, correct_trajectory  # noqa: E402
+import numpy as np  # noqa: E402
 from stereo_manip_tools.bench_report import goal, write_report  # noqa: E402
 
 I4 = np.eye(4)
 LEVELS = [('1mm_1deg', 1e-3, np.deg2rad(1.0)), ('1.5mm_2deg', 1.5e-3, np.deg2rad(2.0))]
 METHODS = ('recognised_offline', 'recognised_online', 'peer_per_frame_detection')
-
-
-def equivalent(m, f, T_true, truth, pairs) -> bool:
-    """The relation ``pairs`` holds at the true pose and spans the true constraints."""
-    if not truth:
-        return not pairs
-    if not pairs:
-        return False
-    g = evaluate_contacts(m, f, T_true, list(pairs))
-    if np.abs(g.distances).max() > 1e-6:
-        return False
-    s = np.array([1.0 / m.size] * 3 + [1.0] * 3)
-    A1 = constraint_matrix(m, f, T_true, list(truth))[0] * s
-    A2 = constraint_matrix(m, f, T_true, list(pairs))[0] * s
-
-    def rank(A):
-        sv = np.linalg.svd(A, compute_uv=False)
-        return int(np.count_nonzero(sv > 1e-6 * sv[0]))
-    r1, r2 = rank(A1), rank(A2)
-    return r1 == r2 == rank(np.vstack([A1, A2]))
 
 
 def add_error(m, T_est_rel, T_true_rel) -> float:
@@ -267,7 +248,7 @@ def summarise(rows: List[dict], quick: bool) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--quick', action='store_true', help='one seed per track and level')
     args = ap.parse_args()
     run(args.quick)

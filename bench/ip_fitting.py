@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Benchmark of ip_modeler (issue 7): adaptive-degree 3L fits by incremental QR vs baselines.
+"""
+Benchmark of ip_modeler (issue 7): adaptive-degree 3L fits by incremental QR vs baselines.
 
 Cases: sphere, ellipsoid, cube (0.08 m), cylinder, torus and a superquadric (|x|^3+|y|^3+|z|^3),
 all 0.08 m across, sampled analytically with exact outward normals; Gaussian noise sigma in
@@ -28,17 +29,13 @@ Run: python bench/ip_fitting.py [--quick]   (writes bench/results/ip_fitting.jso
 
 from __future__ import annotations
 
+import argparse
 import os
+import platform
+import time
+from typing import Dict, List
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy is imported
-
-import argparse  # noqa: E402
-import platform  # noqa: E402
-import time  # noqa: E402
-from typing import Dict, List  # noqa: E402
-
-import numpy as np  # noqa: E402
-from scipy.linalg import solve_triangular  # noqa: E402
 
 from ip_modeler.evaluation import evaluate_model  # noqa: E402
 from ip_modeler.fitting import (DEFAULT_3L_OFFSET, estimate_normals,  # noqa: E402
@@ -46,7 +43,9 @@ from ip_modeler.fitting import (DEFAULT_3L_OFFSET, estimate_normals,  # noqa: E4
                                 normalize_points, three_layer_data)
 from ip_modeler.incremental_qr import IncrementalQR  # noqa: E402
 from ip_modeler.monomials import degree_slice, monomial_count, monomial_matrix  # noqa: E402
-from ip_modeler.shapes import SHAPES, add_noise, sample_shape, visible_half  # noqa: E402
+from ip_modeler.shapes import add_noise, sample_shape, SHAPES, visible_half  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.linalg import solve_triangular  # noqa: E402
 from stereo_manip_tools.bench_report import goal, write_report  # noqa: E402
 
 SIZE = 0.08
@@ -122,7 +121,7 @@ def run_cases(quick: bool) -> List[Dict]:
                             if k in ('rms_distance_rel', 'spurious_sheets')}
                         for d, m in sorted(plain.models.items())}
                 rows.append(row)
-                print(f"{shape:12s} noise {noise:5.3f} {view:4s}: degree {deg} "
+                print(f'{shape:12s} noise {noise:5.3f} {view:4s}: degree {deg} '
                       f"RMS {ev['rms_distance_rel']:.4f} max {ev['max_distance_rel']:.4f} "
                       f"sheets {ev['spurious_sheets']} | Taubin "
                       f"{row['taubin']['rms_distance_rel']:.4f} grad1 "
@@ -132,7 +131,7 @@ def run_cases(quick: bool) -> List[Dict]:
 
 
 def _incremental(M, b, X, variant='arnoldi'):
-    """The adaptive fit's factorisation: append each degree block, solve, degrees 1..8."""
+    """Run the adaptive fit's factorisation: append each degree block, solve, degrees 1..8."""
     qr = IncrementalQR(b, capacity=M.shape[1], variant=variant,
                        points=X if variant == 'arnoldi' else None)
     out = []
@@ -218,19 +217,19 @@ def run_timing(quick: bool) -> Dict:
             'residual_norm_incremental_vs_lstsq': resid,
         }
         o = out[str(n)]
-        print(f"timing {n} points ({M.shape[0]}x{M.shape[1]}): incremental (arnoldi) "
+        print(f'timing {n} points ({M.shape[0]}x{M.shape[1]}): incremental (arnoldi) '
               f"{best['incremental'] * 1e3:.1f} ms, Householder {best['householder'] * 1e3:.1f}"
               f" ms ({o['speedup_vs_householder_best']:.2f}x), lstsq "
               f"{best['lstsq'] * 1e3:.1f} ms ({o['speedup_vs_lstsq_best']:.2f}x), classical "
               f"BCGS2 {best['incremental_classical_bcgs2'] * 1e3:.1f} ms, modified BMGS2 "
               f"{best['incremental_modified_bmgs2'] * 1e3:.1f} ms; loss of orthogonality "
-              f"{loss:.1e}", flush=True)
+              f'{loss:.1e}', flush=True)
     out['load_average_after'] = list(os.getloadavg())
     return out
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument('--quick', action='store_true', help='fewer cases and repetitions')
     args = parser.parse_args()
     t_start = time.perf_counter()

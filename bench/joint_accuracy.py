@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Joint estimator accuracy against ground truth (issue 6), with the iterative Eq. (17) baseline.
+"""
+Joint estimator accuracy against ground truth (issue 6), with the iterative Eq. (17) baseline.
 
 Run: ``source scripts/env.sh && python bench/joint_accuracy.py`` (writes
 bench/results/joint_accuracy.json; ``--quick`` runs a few seeds and writes nothing).
@@ -34,14 +35,13 @@ import itertools
 import os
 import time
 
-import numpy as np
-from scipy.spatial.transform import Rotation
-
 from joint_estimator.common import JointType, split_track
 from joint_estimator.revolute import (
     fit_axis_directions, fit_axis_directions_iterative, make_fit)
 from joint_estimator.selection import estimate_joint
 from joint_estimator.synthetic import add_noise, add_outliers, random_joint_motion
+import numpy as np
+from scipy.spatial.transform import Rotation
 from stereo_manip_tools.bench_report import goal, write_report
 
 SIGMA_POS = (0.001, 0.005)
@@ -171,7 +171,7 @@ def run_type_cell(jt, sp, sr, n, r, fo, seeds):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='few seeds, no JSON written')
     ap.add_argument('--seeds', type=int, default=50, help='revolute seeds per cell')
     ap.add_argument('--seeds-type-goal', type=int, default=50,

@@ -1,5 +1,8 @@
 #!/usr/bin/env python3
-"""Joint estimation on square-marker tracks with IPPE pose flips (issue 14), against main's
+"""
+Benchmark: joint estimation on square-marker tracks with IPPE pose flips (issue 14).
+
+Joint estimation on square-marker tracks with IPPE pose flips (issue 14), against main's
 estimator in the same run.
 
 Run: ``source scripts/env.sh && python bench/joint_marker_flips.py`` (writes
@@ -43,11 +46,10 @@ import tempfile
 import time
 
 import cv2
-import numpy as np
-from scipy.spatial.transform import Rotation
-
 from joint_estimator.common import JointType, rotations_about_axis
 from joint_estimator.selection import estimate_joint
+import numpy as np
+from scipy.spatial.transform import Rotation
 from stereo_manip_tools.bench_report import goal, write_report
 
 REPO = Path(__file__).resolve().parents[1]
@@ -222,7 +224,7 @@ def stats(values):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--tracks', type=int, default=200)
     ap.add_argument('--quick', action='store_true', help='10 tracks, nothing written')
     args = ap.parse_args()

@@ -1,4 +1,5 @@
-"""Benchmark: object_localizer accuracy and speed against plain ICP, with ground truth.
+"""
+Benchmark: object_localizer accuracy and speed against plain ICP, with ground truth.
 
 Scenes: shipped models (link_arm, slider_carriage, peg) at random poses 0.5-1.0 m from the
 sensor; observed clouds are visible-surface samples with Gaussian noise (sigma 1 mm), a stereo
@@ -18,10 +19,9 @@ import argparse
 import time
 
 import numpy as np
-import open3d as o3d
-
 from object_localizer.evaluation import add_s, sample_visible_surface
 from object_localizer.localization import fine_localize, localize, prepare_model, prepare_scene
+import open3d as o3d
 from stereo_manip_tools.bench_report import goal, write_report
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis, transform_points
@@ -54,7 +54,7 @@ def peer_icp(template, cloud, prior, point_to_plane):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     parser.add_argument('--trials', type=int, default=20, help='poses per model')
     args = parser.parse_args()
     names = ['link_arm', 'slider_carriage', 'peg']

@@ -1,4 +1,5 @@
-"""Benchmark: global acquisition (no initial pose) on the stereo clouds of every synthetic scene.
+"""
+Benchmark: global acquisition (no initial pose) on the stereo clouds of every synthetic scene.
 
 Data: every scene of ``stereo_depth.synthetic`` (peg_in_hole, peg_in_slot, revolute_pair,
 prismatic_pair, spherical_pair, primitives), ``--frames`` frames each spread over the scene's
@@ -41,14 +42,13 @@ from pathlib import Path
 import time
 
 import numpy as np
-import open3d as o3d
-
 from object_localizer.acquisition import (acquire_object, prepare_acquisition_model,
                                           prepare_acquisition_scene)
 from object_localizer.evaluation import add_s
 from object_localizer.localization import localize, prepare_scene, remove_dominant_plane
 from object_localizer.symmetry import find_symmetries, symmetric_pose_error
 from object_localizer.verification import sample_model_surface
+import open3d as o3d
 from stereo_manip_tools.bench_report import goal, results_dir, write_report
 from stereo_manip_tools.mesh_io import find_model, load_obj
 
@@ -96,8 +96,11 @@ def stereo_frames(cache: Path, frames_per_scene: int):
 
 
 def open3d_peer(template, points, seed):
-    """Plain Open3D: FPFH + RANSAC on the scene without its dominant plane, then point-to-plane
-    ICP (least squares)."""
+    """
+    Localise with plain Open3D (the peer).
+
+    FPFH + RANSAC on the scene without its dominant plane, then point-to-plane ICP (least squares).
+    """
     reg = o3d.pipelines.registration
     v = template.voxel_size
     search = prepare_scene(points, v)
@@ -144,7 +147,7 @@ def stats(values):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     parser.add_argument('--frames', type=int, default=14, help='frames per scene')
     parser.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS)
     parser.add_argument('--strides', nargs='+', type=int, default=[1, 6, 21, 3],

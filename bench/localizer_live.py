@@ -1,4 +1,5 @@
-"""Benchmark: wrong poses and losses of object_localizer_node in the live graph, against truth.
+"""
+Benchmark: wrong poses and losses of object_localizer_node in the live graph, against truth.
 
 Graph (separate processes from the install tree, as ``make demo`` starts them):
 ``synthetic_camera`` -> ``stereo_depth_node`` (census block matching, 160 disparities) ->
@@ -23,7 +24,6 @@ Writes bench/results/localizer_live.json.
 
 import argparse
 import os
-from pathlib import Path
 import time
 
 import numpy as np
@@ -33,8 +33,8 @@ from object_localizer.localization import prepare_model
 from stereo_manip_tools.bench_report import goal, write_report
 from stereo_manip_tools.conversions import pose_to_matrix, stamp_to_ns
 from stereo_manip_tools.mesh_io import find_model, load_obj
-from stereo_manip_tools.processes import ExecutableProcess, make_node, shutdown_node, \
-    spin_until
+from stereo_manip_tools.processes import ExecutableProcess, make_node, process_cpu_seconds, \
+    shutdown_node, spin_until
 
 SCENES = {'peg_in_hole': (['hole_block', 'peg'], ['hole_block'], False),
           'revolute_pair': (['link_base', 'link_arm'], [], True)}
@@ -62,14 +62,6 @@ def _args(params, remap=None):
     for a, b in (remap or {}).items():
         out += ['-r', f'{a}:={b}']
     return out
-
-
-def _cpu_seconds(pid):
-    try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
-    except (OSError, IndexError, ValueError):
-        return float('nan')
 
 
 def run(scene, mode, rate, seconds, frames, log):
@@ -108,7 +100,8 @@ def run(scene, mode, rate, seconds, frames, log):
         for n in names:
             node.create_subscription(
                 TrackStatus, f'/objects/{n}/status',
-                lambda m, n=n: statuses[n].append((m, _cpu_seconds(localizer.process.pid))), qos)
+                lambda m, n=n: statuses[n].append(
+                    (m, process_cpu_seconds(localizer.process.pid))), qos)
         for p, w in zip(procs, ('synthetic_camera', 'stereo_depth_node', 'object_localizer')):
             assert p.wait_for_node(node, w, 120), p.output()[-3000:]
         t0 = time.monotonic()
@@ -180,7 +173,7 @@ def run(scene, mode, rate, seconds, frames, log):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     parser.add_argument('--rate', type=float, default=10.0, help='free-running camera rate')
     parser.add_argument('--seconds', type=float, default=45.0, help='free-running duration')
     parser.add_argument('--frames', type=int, default=40, help='triggered frames')

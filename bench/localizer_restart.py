@@ -1,4 +1,5 @@
-"""Benchmark: time to the first verified pose of object_localizer_node after a (re)start.
+"""
+Benchmark: time to the first verified pose of object_localizer_node after a (re)start.
 
 Processes from the install tree, as in a robot's graph: a producer streaming clouds of a moving
 peg at 10 Hz (``object_localizer/test/cloud_stream_peer.py``, the process tests' producer, with
@@ -51,7 +52,7 @@ def first_pose(node, poses, truths, t0, points, timeout=60.0):
 
 def main() -> None:
     from geometry_msgs.msg import PoseStamped
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     parser.add_argument('--restarts', type=int, default=3)
     args = parser.parse_args()
     points = prepare_model(load_obj(find_model('peg'))).points

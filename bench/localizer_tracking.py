@@ -1,4 +1,5 @@
-"""Benchmark: object_localizer tracking of the peg at 640x480, beside plain Open3D ICP.
+"""
+Benchmark: object_localizer tracking of the peg at 640x480, beside plain Open3D ICP.
 
 Data: the synthetic camera's ``peg_in_hole`` scene (75 frames, every 3rd of 225: approach,
 contacts, slide, insertion), rendered at 640x480 and turned into clouds by the stereo pipeline
@@ -24,12 +25,11 @@ import os
 import time
 
 import numpy as np
-import open3d as o3d
-
 from object_localizer.conversions import cloud_xyz
 from object_localizer.evaluation import add_s
 from object_localizer.tracking import ObjectTracker, prepare_tracking_model, SceneCloud, \
     TrackerSettings
+import open3d as o3d
 from stereo_depth.pipeline import compute_disparity, disparity_to_points
 from stereo_depth.synthetic import render
 from stereo_manip_tools.bench_report import goal, write_report
@@ -72,7 +72,7 @@ def stats(values):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     parser.add_argument('--frames', default='0:225:3', help='start:stop:step of scene frames')
     parser.add_argument('--repeats', type=int, default=3,
                         help='timing passes over the sequence (the median per frame is kept)')

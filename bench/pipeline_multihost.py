@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""The peg_in_hole graph over three machines: rate, latency and link load vs one machine.
+"""
+The peg_in_hole graph over three machines: rate, latency and link load vs one machine.
 
 Three simulated hosts (Linux network namespaces, ``stereo_manip_tools.netns``) on one LAN:
 
@@ -107,7 +108,7 @@ IMAGE_PAIR_BYTES = 2 * 640 * 480          # mono8 left + right, payload only
 
 
 def _shipped_profile_with(block: str) -> str:
-    """The shipped multi-host profile with ``block`` added after its participant profile."""
+    """Return the shipped multi-host profile with ``block`` added after its participant profile."""
     from stereo_manip_bringup.deployment import multihost_profile_path
     text = multihost_profile_path().read_text()
     return text.replace('</participant>', '</participant>\n' + block, 1)
@@ -115,13 +116,13 @@ def _shipped_profile_with(block: str) -> str:
 
 # ablation profiles only: the shipped one is a file of stereo_manip_bringup
 FASTDDS_PROFILES = {
-    'heartbeat_response_40ms': lambda: _shipped_profile_with('''  <data_reader profile_name="\
+    'heartbeat_response_40ms': lambda: _shipped_profile_with("""  <data_reader profile_name="\
 stereo_manip_reader" is_default_profile="true">
     <times>
       <heartbeatResponseDelay><sec>0</sec><nanosec>40000000</nanosec></heartbeatResponseDelay>
     </times>
-  </data_reader>'''),
-    'max_message_1400': '''<?xml version="1.0" encoding="UTF-8"?>
+  </data_reader>"""),
+    'max_message_1400': """<?xml version="1.0" encoding="UTF-8"?>
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <transport_descriptors>
     <transport_descriptor>
@@ -137,7 +138,7 @@ stereo_manip_reader" is_default_profile="true">
     </rtps>
   </participant>
 </profiles>
-''',
+""",
 }
 
 
@@ -202,7 +203,7 @@ def run_condition(name: str, spec: Dict[str, Any], opts: argparse.Namespace,
 
 
 def _peer(name: str, result: Dict[str, Any]) -> str:
-    """The one-host run measured in the same batch as ``name``."""
+    """Return the one-host run measured in the same batch as ``name``."""
     return f"one_host_{result['batch']}" if result.get('batch') else 'one_host'
 
 
@@ -273,8 +274,12 @@ def report(results: Dict[str, Any], opts: argparse.Namespace, load_before: Any,
 
 
 def _previous_run(old: Dict[str, Any]) -> Dict[str, Any]:
-    """The figures of the last run before the shipped profile (kept visible, not re-measured
-    under the same names)."""
+    """
+    Return the figures of the last run before the shipped profile.
+
+    The figures of the last run before the shipped profile (kept visible, not re-measured
+    under the same names).
+    """
     if not old.get('goals'):
         return {}
     keep = ('rate_hz', 'frames_with_corrected_pose', 'latency_ms', 'camera_rate_hz', 'condition')

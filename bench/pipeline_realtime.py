@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""The live graphs at camera rate: rate, latency, drops and CPU per node, as separate processes.
+"""
+The live graphs at camera rate: rate, latency, drops and CPU per node, as separate processes.
 
 Each run starts one demo graph (``stereo_manip_bringup.demo.STAGES``: the same nodes,
 parameters and remappings ``make demo`` and the launch file use) with the synthetic camera
@@ -33,7 +34,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-from pathlib import Path
 import re
 import struct
 import sys
@@ -43,6 +43,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from stereo_manip_tools.bench_report import goal, results_dir, write_report
+from stereo_manip_tools.processes import process_cpu_seconds
 
 # What each scene's graph is judged on: the topic carrying its final output, and the topics
 # whose arrival means "the frame reached the last node's input".
@@ -66,20 +67,15 @@ EXTRA_TOPICS = {
 
 
 def cdr_stamp_ns(data: bytes) -> int:
-    """Header stamp of a serialised (CDR, little or big endian) message that starts with a
-    ``std_msgs/Header``: 4 bytes encapsulation, int32 sec, uint32 nanosec."""
+    """
+    Read the header stamp of a serialised message that starts with a ``std_msgs/Header``.
+
+    Header stamp of a serialised (CDR, little or big endian) message that starts with a
+    ``std_msgs/Header``: 4 bytes encapsulation, int32 sec, uint32 nanosec.
+    """
     endian = '<' if data[1] == 1 else '>'
     sec, nsec = struct.unpack_from(endian + 'iI', data, 4)
     return sec * 1_000_000_000 + nsec
-
-
-def proc_cpu_s(pid: int) -> float:
-    """utime + stime [s] of a process from /proc (NaN once it has gone)."""
-    try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    except OSError:
-        return float('nan')
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 def percentiles(values: List[float]) -> Dict[str, float]:
@@ -93,8 +89,12 @@ def percentiles(values: List[float]) -> Dict[str, float]:
 
 
 def graph_specs(scene: str, rate: float, peer: bool) -> list:
-    """The demo graph of ``scene`` with the camera free-running at ``rate`` (``peer``: main's
-    stereo configuration)."""
+    """
+    Describe the demo graph of ``scene`` with the camera free-running at ``rate``.
+
+    The demo graph of ``scene`` with the camera free-running at ``rate`` (``peer``: main's
+    stereo configuration).
+    """
     from stereo_manip_bringup.demo import STAGES
     nodes = STAGES[scene]().nodes
     for spec in nodes:
@@ -189,13 +189,13 @@ def run_graph(scene: str, rate: float, seconds: float, peer: bool = False,
                 p.output()[-2000:] for s, p in procs if s.node_name in dead))
         out['startup_s'] = time.monotonic() - t_start
         spin_until(observer, lambda: False, settle)          # JIT/caches warm, queues empty
-        cpu0 = {s.node_name: proc_cpu_s(p.process.pid) for s, p in procs}
+        cpu0 = {s.node_name: process_cpu_seconds(p.process.pid) for s, p in procs}
         own0 = time.process_time()
         load0 = os.getloadavg()
         w0_ns, w0 = time.time_ns(), time.monotonic()
         spin_until(observer, lambda: False, seconds)
         w1_ns, w1 = time.time_ns(), time.monotonic()
-        cpu1 = {s.node_name: proc_cpu_s(p.process.pid) for s, p in procs}
+        cpu1 = {s.node_name: process_cpu_seconds(p.process.pid) for s, p in procs}
         own1 = time.process_time()
         load1 = os.getloadavg()
         spin_until(observer, lambda: False, 2.0)             # late outputs of the last frames
@@ -276,8 +276,11 @@ _OUTPUT_OF = {'stereo_depth_node': '/points2'}
 
 
 def cpu_per_frame(run: Dict[str, Any]) -> Dict[str, float]:
-    """CPU [ms] per frame a node put out (a load-independent cost): the stereo node per
-    cloud, the localiser per status of its first object."""
+    """
+    CPU [ms] per frame a node put out (a load-independent cost).
+
+    The stereo node per cloud, the localiser per status of its first object.
+    """
     out = {}
     first_object = next((t for t in run['topics'] if t.endswith('/status')), None)
     for node, pct in run['cpu_percent_of_one_core'].items():
@@ -340,7 +343,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"   camera {r['camera_rate_measured_hz']:.2f} Hz; final {r['final_topic']} "
               f"{r['final_rate_hz']:.2f} Hz, latency median {r['final_latency_ms']['median']:.1f}"
               f" p90 {r['final_latency_ms']['p90']:.1f} max {r['final_latency_ms']['max']:.1f} "
-              f"ms; dropped before the last node "
+              f'ms; dropped before the last node '
               f"{100 * r['dropped_before_last_node_fraction']:.1f} %; load "
               f"{r['load_average_1min']['end']:.2f}", flush=True)
         for topic, t in r['topics'].items():

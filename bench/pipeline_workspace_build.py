@@ -1,4 +1,5 @@
-"""Benchmark: how fast the workspace set-up is when nothing changed (issue: foundation).
+"""
+Benchmark: how fast the workspace set-up is when nothing changed (issue: foundation).
 
 Measures, in one run on this machine:
 - the second run of ``scripts/bootstrap.sh`` (venv present, nothing changed): goal < 30 s;

@@ -1,4 +1,7 @@
-"""Benchmark: reliability of the node graph (issue 16) - fuzzing, kill -9 / restart, soak,
+"""
+Benchmark: reliability of the node graph (issue 16).
+
+Benchmark: reliability of the node graph (issue 16) - fuzzing, kill -9 / restart, soak,
 recorder under signals.
 
 Sections (``--sections``, default all; each run merges its sections into the JSON):
@@ -131,10 +134,14 @@ def run_fuzz(cases_per_node: int, names: List[str], log) -> Dict[str, Any]:
 # --- the peg_in_hole graph ------------------------------------------------------------------
 
 def graph_specs(rate: float) -> List[Any]:
-    """The demo's peg_in_hole graph (stereo_manip_bringup.demo) with the camera free-running at
+    """
+    Describe the demo's peg_in_hole graph with the camera free-running at ``rate`` Hz.
+
+    The demo's peg_in_hole graph (stereo_manip_bringup.demo) with the camera free-running at
     ``rate`` Hz, one scene frame per camera frame (the scene loops every 225 frames: 22.5 s at
     10 Hz; at the loop the peg jumps 18 cm); remappings made relative, so the whole graph lives
-    in the namespace NS."""
+    in the namespace NS.
+    """
     from stereo_manip_bringup.demo import _peg_in_hole_stage, NodeSpec
     specs = []
     for spec in _peg_in_hole_stage('peg_in_hole_live', live_seconds=1.0).nodes:
@@ -156,8 +163,12 @@ def _stamp_of_cdr(data: bytes) -> int:
 
 
 class Graph:
-    """The graph as processes in namespace NS, and an observer taking raw messages (only the
-    stamps are decoded, so watching the 3 MB clouds costs little)."""
+    """
+    The graph as processes in namespace NS, and an observer.
+
+    The graph as processes in namespace NS, and an observer taking raw messages (only the
+    stamps are decoded, so watching the 3 MB clouds costs little).
+    """
 
     TOPICS = {
         'truth': ('objects/peg/pose_truth', 'geometry_msgs/msg/PoseStamped'),
@@ -285,9 +296,13 @@ WRONG_POSE_M = 0.005
 # --- kill / restart -------------------------------------------------------------------------
 
 def kill_trial(victim: str, rate: float, timeout: float, log) -> Dict[str, Any]:
-    """A fresh graph; steady corrected poses; SIGKILL ``victim`` and restart it at once; time
-    until the first *correct* corrected pose (ADD-S <= WRONG_POSE_M) of a frame taken after
-    the kill, and the wrong ones published meanwhile."""
+    """
+    Kill ``victim`` in a running graph, restart it and time the recovery.
+
+    A fresh graph; steady corrected poses; SIGKILL ``victim`` and restart it at once; time until
+    the first *correct* corrected pose (ADD-S <= WRONG_POSE_M) of a frame taken after the kill,
+    and the wrong ones published meanwhile.
+    """
     graph = Graph(rate, keep_messages=('truth', 'corrected'))
     judge = PoseJudge(graph)
     try:

@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Benchmark of the stereo_depth pipeline against OpenCV StereoSGBM, measured in the same run.
+"""
+Benchmark of the stereo_depth pipeline against OpenCV StereoSGBM, measured in the same run.
 
 1. Middlebury Motorcycle (scikit-image copy, 741x500, 64 disparities; the ground truth spans
    7.2-59.9 px, so 64 candidates cover it): non-occluded bad-1/2/4 with missing estimates counted
@@ -49,7 +50,8 @@ def run_method(name: str, left: np.ndarray, right: np.ndarray, ndisp: int) -> np
 
 
 def timed_rounds(methods, left, right, ndisp, rounds, slow=('bp',)):
-    """Median wall and CPU seconds per frame, methods interleaved round by round.
+    """
+    Median wall and CPU seconds per frame, methods interleaved round by round.
 
     Every method is called once before timing (numba cache load etc.), except the ``slow``
     ones, which run once, timed. CPU time (all threads of this process) is reported next to
@@ -93,7 +95,7 @@ def middlebury(rounds: int) -> dict:
         nonocc = evaluate_disparity(outs[m], gt, mask)
         allpix = evaluate_disparity(outs[m], gt)
         res[m] = {'time_s': times[m], 'cpu_s': cpu[m], 'nonocc': nonocc, 'all': allpix}
-        print(f"{m:18s} {times[m] * 1e3:8.1f} ms (cpu {cpu[m] * 1e3:7.1f} ms)  nonocc bad-2 "
+        print(f'{m:18s} {times[m] * 1e3:8.1f} ms (cpu {cpu[m] * 1e3:7.1f} ms)  nonocc bad-2 '
               f"{nonocc['bad-2.0']:.4f} "
               f"(invalid {nonocc['invalid']:.4f})  all bad-2 {allpix['bad-2.0']:.4f}",
               flush=True)
@@ -106,8 +108,12 @@ def middlebury(rounds: int) -> dict:
 
 
 def frame_rate(n_frames: int) -> dict:
-    """Frames/s of each method on a stream: ``n_frames`` consecutive synthetic frames, one
-    method at a time (as the node runs), after two warm-up frames; median per-frame time."""
+    """
+    Frames/s of each method on a stream.
+
+    ``n_frames`` consecutive synthetic frames, one method at a time (as the node runs), after two
+    warm-up frames; median per-frame time.
+    """
     from stereo_depth.synthetic import render
 
     stream = [render('peg_in_hole', 60 + k)[:2] for k in range(n_frames)]
@@ -166,7 +172,7 @@ def synthetic(frames, rounds: int) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--quick', action='store_true', help='fewer repetitions and frames')
     args = ap.parse_args()
     rounds = 3 if args.quick else 7

@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
-"""What a robot controller reads from stereo_manip: the corrected object pose, the joint estimate
-and the TF frames.
+"""
+What a robot controller reads from stereo_manip.
+
+The corrected object pose, the joint estimate and the TF frames.
 
     source scripts/env.sh
     python examples/controller_view.py --object peg --target-frame world

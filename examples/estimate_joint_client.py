@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""A controller asks joint_estimator_node which joint links a door to its frame.
+"""
+A controller asks joint_estimator_node which joint links a door to its frame.
 
     source scripts/env.sh
     scripts/ros2run joint_estimator joint_estimator_node &      # the server

@@ -1,4 +1,5 @@
-"""Every node's subscribers under fuzzing: the good input of each cycle and its checked output.
+"""
+Every node's subscribers under fuzzing: the good input of each cycle and its checked output.
 
 Shared by ``tests/test_fuzz_nodes.py`` (a few cycles per node) and ``bench/reliability.py``
 (>= 1000 malformed messages per node). Each target's ``check`` tests the *output* for the good
@@ -126,7 +127,7 @@ def ip_modeler_target() -> FuzzTarget:
 # --- contact_correction ---------------------------------------------------------------------
 
 def _insertion_pose(k: int) -> np.ndarray:
-    """A peg 1-4 cm deep in the hole_block (identity pose), with 1 mm / 0.5 deg of noise."""
+    """Place a peg 1-4 cm deep in the hole_block (identity pose), with 1 mm / 0.5 deg of noise."""
     from stereo_manip_tools.transforms import make_transform, rotation_about_axis
     rng = np.random.default_rng(k)
     w = rng.normal(size=3) * np.deg2rad(0.5)

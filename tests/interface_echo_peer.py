@@ -1,5 +1,8 @@
-"""Peer process for test_interfaces_interprocess: echoes every stereo_manip_msgs message and
-answers every service, so the test exercises both directions across two processes over DDS.
+"""
+Peer process for test_interfaces_interprocess.
+
+Echoes every stereo_manip_msgs message and answers every service, so the test exercises both
+directions across two processes over DDS.
 
 Messages on ``/roundtrip/in/<Name>`` are republished unchanged on ``/roundtrip/out/<Name>``.
 Service ``/roundtrip/<Name>`` answers ``fill_message(Response, 42)`` with ``success`` set to
@@ -7,10 +10,9 @@ whether the request equalled ``fill_message(Request, 7)`` field by field.
 """
 
 import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-
 from stereo_manip_msgs import msg as msgs, srv as srvs
+from stereo_manip_tools.robustness import spin_until_shutdown
 from stereo_manip_tools.testing import fill_message
 
 MESSAGES = ['ContactElement', 'ContactPair', 'ContactState', 'JointEstimate',
@@ -35,13 +37,7 @@ def main() -> None:
             filled.success = request == fill_message(cls.Request, 7)
             return filled
         keep.append(node.create_service(cls, f'/roundtrip/{name}', answer))
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)
 
 
 if __name__ == '__main__':

@@ -1,4 +1,5 @@
-"""The recorder under signals: messages published vs recorded (tests and bench/reliability.py).
+"""
+The recorder under signals: messages published vs recorded (tests and bench/reliability.py).
 
 A publisher in this process sends ``std_msgs/Header`` messages (``frame_id`` = sequence number)
 at a fixed rate to a ``record`` process; the recorder is signalled mid-stream while publishing
@@ -18,7 +19,8 @@ from typing import Any, Dict
 def recorder_trial(out_dir: Path, sig: int, *, rate_hz: float = 200.0, before_s: float = 3.0,
                    after_s: float = 0.5, flush_period: float = 0.5, storage: str = 'mcap'
                    ) -> Dict[str, Any]:
-    """Record ``/reliability/seq`` and send ``sig`` after ``before_s`` seconds of publishing.
+    """
+    Record ``/reliability/seq`` and send ``sig`` after ``before_s`` seconds of publishing.
 
     :returns: counts (published before the signal, recorded, lost = published before the
         signal and missing from the bag), whether the bag was closed (metadata.yaml) and is

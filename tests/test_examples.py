@@ -1,6 +1,10 @@
-"""The examples/ scripts run against the installed nodes (each its own process) and report what
+"""
+The examples/ scripts against the installed nodes.
+
+The examples/ scripts run against the installed nodes (each its own process) and report what
 a controller needs: the corrected pose in the controller's TF frame, the joint estimate, and a
-service answer checked against the simulated truth."""
+service answer checked against the simulated truth.
+"""
 
 import json
 import os
@@ -9,13 +13,12 @@ import subprocess
 import sys
 
 from geometry_msgs.msg import PoseStamped
+from joint_estimator.common import JointType
+from joint_estimator.synthetic import random_joint_motion
 import numpy as np
 import pytest
 from std_msgs.msg import Header
 from stereo_manip_msgs.msg import JointEstimate
-
-from joint_estimator.common import JointType
-from joint_estimator.synthetic import random_joint_motion
 from stereo_manip_tools.conversions import matrix_to_pose, ns_to_stamp, \
     pose_stamped_to_transform_stamped, pose_to_matrix
 from stereo_manip_tools.testing import spin_until, start_executable, wait_for_subscribers

@@ -1,4 +1,7 @@
-"""Every subscriber of every node, as processes from the install tree, under hypothesis-made
+"""
+Every subscriber of every node under hypothesis-made malformed messages.
+
+Every subscriber of every node, as processes from the install tree, under hypothesis-made
 malformed messages; after each burst a good input whose output must still be right.
 
 The run is short (a few bursts per node); ``bench/reliability.py`` runs >= 1000 malformed
@@ -12,8 +15,7 @@ from hypothesis import given, HealthCheck, Phase, settings
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fuzz_targets import TARGETS  # noqa: E402
-
+from fuzz_targets import TARGETS  # noqa: E402, I100 (after the path insert)
 from stereo_manip_tools.fuzzing import burst_strategy, FuzzSession  # noqa: E402
 
 BURSTS = 6

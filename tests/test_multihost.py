@@ -1,4 +1,5 @@
-"""The graph across machines: camera host, perception host and controller host over DDS.
+"""
+The graph across machines: camera host, perception host and controller host over DDS.
 
 Simulated with Linux network namespaces on one machine (stereo_manip_tools.netns): each host
 has its own network stack and reaches the others only over a virtual LAN whose switch adds
@@ -32,10 +33,14 @@ def _own(tag: str):
 
 
 def _udp_probe(lan: VirtualLan, src: str, dst: str, count: int, gap: float) -> np.ndarray:
-    """Send ``count`` stamped UDP datagrams src -> dst inside the LAN; one-way times [s] of
-    those that arrived (NaN for lost ones). Both ends share this machine's clock."""
+    """
+    Send ``count`` stamped UDP datagrams src -> dst inside the LAN.
+
+    one-way times [s] of those that arrived (NaN for lost ones). Both ends share this machine's
+    clock.
+    """
     port = 47000 + os.getpid() % 1000
-    receiver = subprocess.Popen(lan.command(dst, [sys.executable, '-c', textwrap.dedent(f'''
+    receiver = subprocess.Popen(lan.command(dst, [sys.executable, '-c', textwrap.dedent(f"""
         import socket, struct, time
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         s.bind(('{lan.addresses[dst]}', {port}))
@@ -51,17 +56,17 @@ def _udp_probe(lan: VirtualLan, src: str, dst: str, count: int, gap: float) -> n
         except socket.timeout:
             pass
         print(' '.join(f'{{k}}:{{v!r}}' for k, v in got.items()), flush=True)
-        ''')]), stdout=subprocess.PIPE, text=True)
+        """)]), stdout=subprocess.PIPE, text=True)
     try:
         assert receiver.stdout.readline().strip() == 'bound'
-        subprocess.run(lan.command(src, [sys.executable, '-c', textwrap.dedent(f'''
+        subprocess.run(lan.command(src, [sys.executable, '-c', textwrap.dedent(f"""
             import socket, struct, time
             s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             for k in range({count}):
                 s.sendto(struct.pack('!Id', k, time.time()) + bytes(500),
                          ('{lan.addresses[dst]}', {port}))
                 time.sleep({gap})
-            ''')]), check=True, timeout=60)
+            """)]), check=True, timeout=60)
         out, _ = receiver.communicate(timeout=30)
     finally:
         if receiver.poll() is None:
@@ -129,8 +134,12 @@ def test_lan_rejects_addresses_outside_private_ranges():
 @pytest.mark.process
 @needs_netns
 def test_peg_in_hole_split_over_three_hosts_reaches_the_controller(tmp_path):
-    """camera host: synthetic camera; perception host: stereo + localizer + contact;
-    controller host: a client logging the corrected peg pose. 1 Gbit/s, 0.5 ms links."""
+    """
+    The peg-in-hole graph split over three hosts reaches the controller.
+
+    Camera host: synthetic camera; perception host: stereo + localizer + contact; controller
+    host: a client logging the corrected peg pose. 1 Gbit/s, 0.5 ms links.
+    """
     from object_localizer.evaluation import add_s
     from stereo_manip_bringup.multihost import CORRECTED_TOPIC, HOSTS, \
         peg_in_hole_placement, run_graph, TRUTH_TOPIC
@@ -188,8 +197,12 @@ def test_peg_in_hole_split_over_three_hosts_reaches_the_controller(tmp_path):
 
 
 def test_summarise_rate_latency_accuracy_and_link_on_a_known_log():
-    """The figures the benchmark reports, on a controller log with known answers: a pose every
-    100 ms with 40 ms latency, every 3rd camera frame (30 Hz) corrected, one 10 mm error."""
+    """
+    The figures the benchmark reports, on a controller log with known answers.
+
+    a pose every 100 ms with 40 ms latency, every 3rd camera frame (30 Hz) corrected, one 10 mm
+    error.
+    """
     from stereo_manip_bringup.multihost import CORRECTED_TOPIC, GraphRun, summarise, \
         TRUTH_TOPIC
 
@@ -233,9 +246,12 @@ def test_summarise_rate_latency_accuracy_and_link_on_a_known_log():
 
 
 def test_multihost_environment_names_the_shipped_profile():
-    """What ``multihost:=true`` and ``python -m stereo_manip_bringup.deployment`` give: SUBNET
-    discovery and a Fast DDS profile whose UDP datagrams fit one Ethernet frame, with a
-    receive buffer larger than one image pair."""
+    """
+    What ``multihost:=true`` and ``python -m stereo_manip_bringup.deployment`` give.
+
+    SUBNET discovery and a Fast DDS profile whose UDP datagrams fit one Ethernet frame, with a
+    receive buffer larger than one image pair.
+    """
     import xml.etree.ElementTree as ET
     from stereo_manip_bringup.deployment import multihost_environment
 

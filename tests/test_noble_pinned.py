@@ -1,8 +1,12 @@
-"""The Noble-pinned job: the package tests that need no ROS (pure core) run in a second venv
-with the library versions Ubuntu 24.04 ships (scripts/noble/requirements.txt: numpy 1.26.4,
-SciPy 1.11.4, OpenCV 4.6, numba 0.58, ...), which is what `rosdep install` gives a stock Jazzy
-machine. `make test` creates the venv first (scripts/noble_venv.sh, cached); where its wheels
-cannot be installed this test skips with the reason the script recorded."""
+"""
+The Noble-pinned job.
+
+The package tests that need no ROS (pure core) run in a second venv with the library versions
+Ubuntu 24.04 ships (scripts/noble/requirements.txt: numpy 1.26.4, SciPy 1.11.4, OpenCV 4.6, numba
+0.58, ...), which is what `rosdep install` gives a stock Jazzy machine. `make test` creates the
+venv first (scripts/noble_venv.sh, cached); where its wheels cannot be installed this test skips
+with the reason the script recorded.
+"""
 
 import os
 from pathlib import Path

@@ -1,6 +1,10 @@
-"""package.xml declares what each package imports, with rosdep keys that resolve on Ubuntu 24.04
+"""
+package.xml declares what each package imports, with rosdep keys for Noble.
+
+package.xml declares what each package imports, with rosdep keys that resolve on Ubuntu 24.04
 (Noble) for ROS 2 Jazzy, so `rosdep install --from-paths . -i` + `colcon build` work on a stock
-install. Imports are read from the sources (every import statement, lazy ones too)."""
+install. Imports are read from the sources (every import statement, lazy ones too).
+"""
 
 import ast
 from pathlib import Path
@@ -26,7 +30,7 @@ PIP_ONLY = {'numba', 'rosbags'}
 # test helpers imported by name from their own folder
 LOCAL_MODULES = {p.stem for p in ROOT.glob('*/test/*.py')} | {'conftest'}
 ROS_PACKAGES = {'rclpy', 'launch', 'launch_ros', 'ament_index_python', 'rcl_interfaces',
-                'builtin_interfaces'}
+                'builtin_interfaces', 'ament_flake8', 'ament_pep257'}
 
 
 def imported_modules(folder: Path) -> set:
@@ -41,8 +45,12 @@ def imported_modules(folder: Path) -> set:
 
 
 def required_key(module: str):
-    """The rosdep key of an imported top-level module; None: needs none (standard library,
-    a module of the same folder, or pip-only and checked separately)."""
+    """
+    Return the rosdep key of an imported top-level module.
+
+    None: needs none (standard library, a module of the same folder, or pip-only and checked
+    separately).
+    """
     if module in SYSTEM_KEYS:
         return SYSTEM_KEYS[module]
     if module in WORKSPACE or module in ROS_PACKAGES or module.endswith('_msgs'):

@@ -1,6 +1,10 @@
-"""stereo_camera.launch.py (real stereo camera): the launch file builds the graph from its
-arguments and params file alone (run here against stand-ins of `launch`/`launch_ros`, which are
-not on PyPI), and the shipped params file is valid for every node it names."""
+"""
+stereo_camera.launch.py (real stereo camera).
+
+The launch file builds the graph from its arguments and params file alone (run here against
+stand-ins of `launch`/`launch_ros`, which are not on PyPI), and the shipped params file is valid
+for every node it names.
+"""
 
 import ast
 from pathlib import Path
@@ -9,11 +13,10 @@ import types
 
 import numpy as np
 import pytest
-import yaml
-
 from stereo_manip_tools.testing import make_node, shutdown_node, spin_until, start_executable
 from stereo_manip_tools.tf import TransformListener
 from stereo_manip_tools.transforms import pose_from_xyz_quaternion
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH = ROOT / 'stereo_manip_bringup' / 'launch' / 'stereo_camera.launch.py'
@@ -35,11 +38,11 @@ def _stub_launch(monkeypatch, values):
             return context[self.name]
 
     mods = {
-        'launch': dict(LaunchDescription=lambda actions: actions),
-        'launch.actions': dict(DeclareLaunchArgument=_Recorded, OpaqueFunction=_Recorded),
-        'launch.conditions': dict(IfCondition=lambda cfg: ('if', cfg.name)),
-        'launch.substitutions': dict(LaunchConfiguration=LaunchConfiguration),
-        'launch_ros': {}, 'launch_ros.actions': dict(Node=_Recorded)}
+        'launch': {'LaunchDescription': lambda actions: actions},
+        'launch.actions': {'DeclareLaunchArgument': _Recorded, 'OpaqueFunction': _Recorded},
+        'launch.conditions': {'IfCondition': lambda cfg: ('if', cfg.name)},
+        'launch.substitutions': {'LaunchConfiguration': LaunchConfiguration},
+        'launch_ros': {}, 'launch_ros.actions': {'Node': _Recorded}}
     for name, attrs in mods.items():
         module = types.ModuleType(name)
         module.__dict__.update(attrs)

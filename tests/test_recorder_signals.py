@@ -1,5 +1,9 @@
-"""The recorder loses nothing that reached it under SIGINT/SIGTERM, and after kill -9 its bag
-is readable up to the last flushed chunk (a gap-free prefix of what was published)."""
+"""
+The recorder under SIGINT, SIGTERM and kill -9.
+
+The recorder loses nothing that reached it under SIGINT/SIGTERM, and after kill -9 its bag
+is readable up to the last flushed chunk (a gap-free prefix of what was published).
+"""
 
 from pathlib import Path
 import signal

@@ -1,5 +1,9 @@
-"""Bad start-up parameters end every node with one line on stderr and exit code 1 (no rclpy
-traceback): NaN, a missing model, out of range, wrong type (one case per node)."""
+"""
+Bad start-up parameters end every node with one line on stderr and exit code 1.
+
+Bad start-up parameters end every node with one line on stderr and exit code 1 (no rclpy
+traceback): NaN, a missing model, out of range, wrong type (one case per node).
+"""
 
 import pytest
 

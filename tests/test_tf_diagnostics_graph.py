@@ -1,10 +1,14 @@
-"""Acceptance (#15): the live graph, every node its own process, broadcasts the corrected peg pose
-on /tf -- in a tree that also holds the static camera mount and the frame of contact_state --
-and every node publishes /diagnostics.
+"""
+Acceptance (#15).
+
+The live graph, every node its own process, broadcasts the corrected peg pose on /tf -- in a tree
+that also holds the static camera mount and the frame of contact_state -- and every node publishes
+/diagnostics.
 
 The peg_in_hole graph of the demo (synthetic camera in trigger mode -> stereo_depth_node ->
 object_localizer_node -> contact_correction_node), with the camera mounted on `world`, plus a
-joint_estimator_node and an ip_modeler_node (idle: their diagnostics must still come)."""
+joint_estimator_node and an ip_modeler_node (idle: their diagnostics must still come).
+"""
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -12,9 +16,8 @@ import numpy as np
 import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Empty
-from stereo_manip_msgs.msg import ContactState
-
 from stereo_manip_bringup.demo import NodeSpec, STAGES
+from stereo_manip_msgs.msg import ContactState
 from stereo_manip_tools.conversions import pose_to_matrix, stamp_to_ns
 from stereo_manip_tools.processes import ExecutableProcess
 from stereo_manip_tools.testing import spin_until

@@ -14,7 +14,7 @@ PYTHON_PACKAGES = ['stereo_manip_tools', 'stereo_depth', 'object_localizer',
 
 
 def console_scripts(package: str):
-    """Executable names declared in the package's setup.py entry_points."""
+    """List the executable names declared in the package's setup.py entry_points."""
     tree = ast.parse((ROOT / package / 'setup.py').read_text())
     names = []
     for node in ast.walk(tree):

@@ -1,4 +1,7 @@
-"""Vision error correction with contact relations between polyhedra (non-linear step, then the
+"""
+Vision error correction with contact relations between polyhedra.
+
+Vision error correction with contact relations between polyhedra (non-linear step, then the
 linear optimum of Eqs. 2-9).
 
 Modules (pure numpy / scipy / numba, no rclpy, except the node):

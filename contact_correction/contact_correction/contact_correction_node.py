@@ -1,4 +1,5 @@
-"""``contact_correction_node``: correct a moving object's observed pose with contact relations.
+"""
+``contact_correction_node``: correct a moving object's observed pose with contact relations.
 
 Subscriptions (geometry_msgs/PoseStamped, sensor-data QoS, poses in a common frame):
   - ``moving_pose``: observed pose of the moving object (e.g. the peg);
@@ -28,34 +29,33 @@ from __future__ import annotations
 from collections import deque
 from typing import Dict, List, Tuple
 
+from contact_correction.contact_relation import parse_relation
+from contact_correction.conversions import contact_state_msg
+from contact_correction.correction import correct_pose, CorrectionResult
+from contact_correction.polyhedron import check_model_units, load_polyhedron, Polyhedron
+from contact_correction.recognition import RecognitionOptions
+from contact_correction.trajectory import ContactCorrector, correct_trajectory
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from std_msgs.msg import Header
 from stereo_manip_msgs.msg import ContactState
 from stereo_manip_msgs.srv import CorrectTrajectory
-
-from contact_correction.contact_relation import parse_relation
-from contact_correction.conversions import contact_state_msg
-from contact_correction.correction import CorrectionResult, correct_pose
-from contact_correction.polyhedron import Polyhedron, check_model_units, load_polyhedron
-from contact_correction.recognition import RecognitionOptions
-from contact_correction.trajectory import ContactCorrector, correct_trajectory
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_stamped_to_matrix
 from stereo_manip_tools.diagnostics import NodeDiagnostics
-from stereo_manip_tools.tf import object_frame, PoseTfPublisher
-from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
 from stereo_manip_tools.parameters import bool_descriptor as _bool, \
     float_descriptor as _float, int_descriptor as _int, reject_nonfinite_parameters, \
     string_descriptor as _string
-from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
+    spin_until_shutdown
+from stereo_manip_tools.tf import object_frame, PoseTfPublisher
+from stereo_manip_tools.transforms import pose_from_xyz_quaternion
 
 __all__ = ['ContactCorrectionNode', 'main', 'model_path_problem']
 
@@ -68,8 +68,12 @@ _RECOGNITION_PARAMETERS = ('recognition', 'sigma_translation', 'sigma_rotation',
 
 
 def model_path_problem(value: str) -> str:
-    """Why a model parameter cannot be used ('' when it can): empty, or a path that exists
-    but is not a regular file (a FIFO would block the read, a directory fails it)."""
+    """
+    Why a model parameter cannot be used ('' when it can).
+
+    empty, or a path that exists but is not a regular file (a FIFO would block the read, a
+    directory fails it).
+    """
     if not value.strip():
         return 'must name a model or a model file'
     from pathlib import Path
@@ -83,20 +87,21 @@ def model_path_problem(value: str) -> str:
 
 
 def static_pose(values: List[float]) -> np.ndarray:
-    """4x4 pose of ``[x, y, z, qx, qy, qz, qw]`` (metres, unit quaternion).
+    """
+    4x4 pose of ``[x, y, z, qx, qy, qz, qw]`` (metres, unit quaternion).
 
     :raises ValueError: wrong length, non-finite values or a zero quaternion.
     """
-    v = np.asarray(values, dtype=float)
-    if v.shape != (7,) or not np.all(np.isfinite(v)):
-        raise ValueError(f'fixed_pose_static must be 7 finite numbers [x y z qx qy qz qw], '
-                         f'got {list(values)}')
-    return make_transform(matrix_from_quaternion(v[3:]), v[:3])
+    return pose_from_xyz_quaternion(values, 'fixed_pose_static')
 
 
 class ContactCorrectionNode(Node):
-    """Streaming and batch contact-based correction; thin wrapper around
-    :func:`contact_correction.correction.correct_pose`."""
+    """
+    Contact-based correction of object poses, streaming and as a service.
+
+    Streaming and batch contact-based correction; thin wrapper around
+    :func:`contact_correction.correction.correct_pose`.
+    """
 
     def __init__(self, **kwargs) -> None:
         super().__init__('contact_correction', **kwargs)
@@ -112,7 +117,7 @@ class ContactCorrectionNode(Node):
         static_desc = ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=True,
             description='[x y z qx qy qz qw] of a fixed object that does not move (in the '
-                        'moving poses\' frame); not set: use the fixed_pose topic')
+                        "moving poses' frame); not set: use the fixed_pose topic")
         self.declare_parameter('fixed_pose_static', Parameter.Type.DOUBLE_ARRAY, static_desc)
         self.declare_parameter('tolerance', 0.002, _float(
             'contact detection distance [m]', 0.0, 0.1))
@@ -221,9 +226,12 @@ class ContactCorrectionNode(Node):
             return []
 
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
-        """Checks beyond the descriptors' ranges: finite numbers, model paths that are
-        regular files (a FIFO or a directory would block or fail the read), a parsable
-        relation."""
+        """
+        Check what the descriptors' ranges do not.
+
+        Finite numbers, model paths that are regular files (a FIFO or a directory would block or
+        fail the read), a parsable relation.
+        """
         for p in params:
             if p.type_ == Parameter.Type.DOUBLE and not np.isfinite(p.value):
                 return SetParametersResult(successful=False,
@@ -247,13 +255,13 @@ class ContactCorrectionNode(Node):
 
     def _options(self) -> dict:
         g = self.get_parameter
-        return dict(optimal=g('optimal').value, tolerance=g('tolerance').value,
-                    penetration_tolerance=g('penetration_tolerance').value,
-                    angle_tolerance=g('angle_tolerance').value,
-                    max_translation=g('max_translation').value,
-                    max_rotation=g('max_rotation').value,
-                    check_penetration=g('check_penetration').value,
-                    element_margin=g('element_margin').value)
+        return {'optimal': g('optimal').value, 'tolerance': g('tolerance').value,
+                'penetration_tolerance': g('penetration_tolerance').value,
+                'angle_tolerance': g('angle_tolerance').value,
+                'max_translation': g('max_translation').value,
+                'max_rotation': g('max_rotation').value,
+                'check_penetration': g('check_penetration').value,
+                'element_margin': g('element_margin').value}
 
     def _recognition(self) -> RecognitionOptions | None:
         g = self.get_parameter
@@ -417,10 +425,4 @@ def main(args=None) -> None:
     """Run the node."""
     rclpy.init(args=args)
     node = create_node_or_exit(ContactCorrectionNode, 'contact_correction_node')
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)

@@ -1,4 +1,5 @@
-"""Contact relation between a moving and a fixed polyhedron (Section 3; Hirukawa et al. 1994).
+"""
+Contact relation between a moving and a fixed polyhedron (Section 3; Hirukawa et al. 1994).
 
 A contact relation is the set of pairs of contacting elements. Following Hirukawa et al. the
 elementary pairs are vertex-face (a vertex of the moving object on a face of the fixed one),
@@ -23,10 +24,9 @@ from functools import lru_cache
 from typing import List, Sequence, Tuple
 
 import numpy as np
-
 from stereo_manip_tools.transforms import invert_transform, transform_points
 
-from .polyhedron import Polyhedron, cross3
+from .polyhedron import cross3, Polyhedron
 
 __all__ = [
     'VERTEX',
@@ -51,7 +51,8 @@ _TYPE_NAME = {VERTEX: 'vertex', EDGE: 'edge', FACE: 'face'}
 
 @dataclass(frozen=True)
 class ContactPair:
-    """One pair of contacting elements.
+    """
+    One pair of contacting elements.
 
     :ivar moving_type: VERTEX, EDGE or FACE on the moving object.
     :ivar moving_index: element index on the moving polyhedron.
@@ -81,7 +82,10 @@ _TYPE_CODE = {'vertex': VERTEX, 'edge': EDGE, 'face': FACE}
 
 
 def parse_relation(text: str) -> List[ContactPair]:
-    """Contact relation from text: pairs separated by ';' or new lines, each written as
+    """
+    Parse a contact relation from text.
+
+    Contact relation from text: pairs separated by ';' or new lines, each written as
     :class:`ContactPair` prints it, ``'vertex 3 - face 1'``, ``'face 2 - vertex 7'`` or
     ``'edge 4 - edge 9'`` (moving element first; edge-edge may end with ``' -'`` for the
     negative sign).
@@ -121,7 +125,8 @@ def pair_key(pair: ContactPair) -> Tuple[int, int, int, int]:
 
 @dataclass
 class ContactGeometry:
-    """Geometry of a contact relation at one pose, fixed-object frame.
+    """
+    Geometry of a contact relation at one pose, fixed-object frame.
 
     :ivar distances: signed distances [m], shape (K,).
     :ivar points: contact points [m], shape (K, 3).
@@ -161,7 +166,8 @@ def _split_pairs(pairs: Tuple[ContactPair, ...]) -> tuple:
 
 def evaluate_contacts(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
                       pairs: Sequence[ContactPair]) -> ContactGeometry:
-    """Signed distances, contact points and separating-plane normals of ``pairs`` at ``T_rel``.
+    """
+    Signed distances, contact points and separating-plane normals of ``pairs`` at ``T_rel``.
 
     :param T_rel: pose of the moving object in the fixed object's frame (4x4).
     :raises ValueError: on a pair kind other than vertex-face, face-vertex, edge-edge, or an
@@ -205,7 +211,8 @@ def evaluate_contacts(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
 
 def off_element_distance(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
                          pairs: Sequence[ContactPair]) -> np.ndarray:
-    """How far [m] each pair's contact point lies outside its elements at ``T_rel``.
+    """
+    How far [m] each pair's contact point lies outside its elements at ``T_rel``.
 
     Contact distances are measured to infinite planes and lines; a relation is only realised
     when every contact point also lies on its bounded elements: the vertex's projection on the
@@ -248,7 +255,8 @@ def detect_contact_relation(moving: Polyhedron, fixed: Polyhedron, T_moving: np.
                             T_fixed: np.ndarray, tolerance: float = 1e-3,
                             penetration_tolerance: float | None = None,
                             angle_tolerance: float = 0.1) -> List[ContactPair]:
-    """The contact relation between the moving and the fixed object at the given poses.
+    """
+    Detect the contact relation between the moving and the fixed object at the given poses.
 
     A pair is in contact when its signed distance lies in ``[-penetration_tolerance,
     tolerance]``, its contact point lies on both elements (within the same margin) and the
@@ -328,8 +336,11 @@ def detect_contact_relation(moving: Polyhedron, fixed: Polyhedron, T_moving: np.
 def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray, t: np.ndarray,
                             tolerance: float, pen: float, margin: float, sin_tol: float
                             ) -> List[Tuple[int, int]]:
-    """(vertex of ``vpoly``, face of ``fpoly``) pairs in contact; ``R, t`` map ``vpoly``'s
-    frame into ``fpoly``'s."""
+    """
+    (vertex of ``vpoly``, face of ``fpoly``) pairs in contact.
+
+    ``R, t`` map ``vpoly``'s frame into ``fpoly``'s.
+    """
     cos_tol = np.sqrt(max(0.0, 1.0 - sin_tol * sin_tol))
     idx = vpoly.feature_vertices
     V = vpoly.vertices[idx] @ R.T + t
@@ -369,7 +380,8 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
 
 def _cone_enters(apex: np.ndarray, dirs: np.ndarray, lengths: np.ndarray, other: Polyhedron,
                  depth: float, sin_tol: float) -> bool:
-    """True when an edge leaving ``apex`` runs into the interior of ``other``.
+    """
+    Tell whether an edge leaving ``apex`` runs into the interior of ``other``.
 
     A point a quarter along each edge (at most 10 mm) is tested; it must be inside ``other``
     deeper than the allowed ``depth`` plus the angular slack. Points on ``other``'s surface
@@ -390,7 +402,8 @@ def _cone_enters(apex: np.ndarray, dirs: np.ndarray, lengths: np.ndarray, other:
 
 def penetration_depth(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                       T_fixed: np.ndarray, spacing: float = 0.005) -> float:
-    """Largest interpenetration depth [m] between the two solids (0 when none).
+    """
+    Largest interpenetration depth [m] between the two solids (0 when none).
 
     Vertices and points sampled every ``spacing`` [m] along the edges of each solid are tested
     for inclusion in the other (winding number); the depth of an included point is its distance

@@ -1,5 +1,8 @@
-"""ContactState / ContactPair messages from correction results (the shared conversions lack
-them). Message <-> array only; no rclpy node code."""
+"""
+ContactState / ContactPair messages from correction results (the shared conversions lack them).
+
+Message <-> array only; no rclpy node code.
+"""
 
 from __future__ import annotations
 
@@ -19,7 +22,7 @@ __all__ = ['contact_state_msg', 'contact_pairs_msgs']
 
 def contact_pairs_msgs(pairs: Sequence[ContactPair], points: np.ndarray, normals: np.ndarray,
                        distances: np.ndarray) -> list:
-    """ContactPair messages (fixed-object frame quantities) for a relation."""
+    """Make the ContactPair messages (fixed-object frame quantities) of a relation."""
     out = []
     for k, p in enumerate(pairs):
         m = ContactPairMsg()
@@ -34,7 +37,8 @@ def contact_pairs_msgs(pairs: Sequence[ContactPair], points: np.ndarray, normals
 
 def contact_state_msg(result: CorrectionResult, header: Header, moving_object: str,
                       fixed_object: str) -> ContactState:
-    """ContactState of one corrected (or passed-through) frame.
+    """
+    Make the ContactState of one corrected (or passed-through) frame.
 
     :param header: stamp of the observation; frame_id = the fixed object's frame.
     """

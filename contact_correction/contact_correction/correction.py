@@ -1,4 +1,5 @@
-"""One-call vision error correction of a moving object's pose with contact relations.
+"""
+One-call vision error correction of a moving object's pose with contact relations.
 
 :func:`correct_pose` chains Section 3's steps -- contact relation (detected or given), the
 non-linear correction, then (optionally) the optimal linear correction -- and guards them: bad
@@ -17,15 +18,14 @@ import time
 from typing import List, Optional, Sequence
 
 import numpy as np
-
 from stereo_manip_tools.transforms import check_transform, rotation_log
 
 from .contact_relation import (
     ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts,
     off_element_distance, penetration_depth, relative_pose)
-from .nonlinear_correction import RESIDUAL_TOLERANCE, correct_nonlinear
+from .nonlinear_correction import correct_nonlinear, RESIDUAL_TOLERANCE
 from .optimal_correction import (
-    ConstraintDirections, constraint_directions, constraint_matrix, correct_optimal)
+    constraint_directions, constraint_matrix, ConstraintDirections, correct_optimal)
 from .polyhedron import Polyhedron
 
 __all__ = ['CorrectionResult', 'correct_pose']
@@ -33,7 +33,8 @@ __all__ = ['CorrectionResult', 'correct_pose']
 
 @dataclass
 class CorrectionResult:
-    """Outcome of :func:`correct_pose` for one frame.
+    """
+    Outcome of :func:`correct_pose` for one frame.
 
     :ivar T_moving: corrected pose of the moving object (4x4, input frame); the observed pose,
         unchanged, when ``corrected`` is False.
@@ -84,9 +85,13 @@ class CorrectionResult:
 
 def _near_degenerate(A: np.ndarray, length_scale: float, lo: float = 1e-9,
                      hi: float = 1e-4) -> bool:
-    """True when Eq. 2's matrix has a singular value that is neither clearly zero nor clearly
+    """
+    Tell whether the pose sits at (or next to) a degenerate configuration of the relation.
+
+    True when Eq. 2's matrix has a singular value that is neither clearly zero nor clearly
     non-zero (relative to the largest, rotation columns divided by ``length_scale``): the
-    pose sits at (or next to) a degenerate configuration of the relation."""
+    pose sits at (or next to) a degenerate configuration of the relation.
+    """
     if len(A) == 0:
         return False
     s = np.linalg.svd(np.hstack([A[:, :3] / length_scale, A[:, 3:]]), compute_uv=False)
@@ -104,7 +109,8 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                  element_margin: float = 1e-6,
                  rank1_method: str = 'auto', prune_off_element: bool = False
                  ) -> CorrectionResult:
-    """Correct the observed pose of the moving object with the contact relation.
+    """
+    Correct the observed pose of the moving object with the contact relation.
 
     :param moving: moving object's polyhedron.
     :param fixed: fixed object's polyhedron.

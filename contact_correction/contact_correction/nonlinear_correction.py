@@ -1,4 +1,5 @@
-"""Non-linear vision error correction (step 1 of Section 3; after Takamatsu et al. 2007).
+"""
+Non-linear vision error correction (step 1 of Section 3; after Takamatsu et al. 2007).
 
 From the observed pose, find a nearby pose of the moving object at which every pair of the
 contact relation has zero distance. As the chapter says, any such configuration is accepted:
@@ -19,11 +20,10 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-
 from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
 from .contact_relation import ContactPair, evaluate_contacts
-from .polyhedron import Polyhedron, cross3
+from .polyhedron import cross3, Polyhedron
 
 __all__ = ['NonlinearResult', 'correct_nonlinear', 'apply_screw', 'constraint_rows',
            'RESIDUAL_TOLERANCE']
@@ -35,7 +35,8 @@ RESIDUAL_TOLERANCE = 1e-9
 
 @dataclass
 class NonlinearResult:
-    """Outcome of :func:`correct_nonlinear`.
+    """
+    Outcome of :func:`correct_nonlinear`.
 
     :ivar T_rel: corrected pose of the moving object in the fixed frame (4x4).
     :ivar max_residual: largest |distance| of the relation at ``T_rel`` [m].
@@ -50,7 +51,8 @@ class NonlinearResult:
 
 
 def apply_screw(T: np.ndarray, w: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Move a pose by the finite screw ``x -> R(w) x + v`` in its parent frame.
+    """
+    Move a pose by the finite screw ``x -> R(w) x + v`` in its parent frame.
 
     :param T: 4x4 pose.
     :param w: rotation vector [rad], shape (3,).
@@ -76,7 +78,8 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
                       residual_tolerance: float = RESIDUAL_TOLERANCE,
                       length_scale: float | None = None, rcond: float = 1e-6,
                       anchor_schedule: tuple = (3e-2, 3e-3)) -> NonlinearResult:
-    """Nearby pose satisfying every contact of ``pairs`` (non-linear step, Takamatsu 2007).
+    """
+    Nearby pose satisfying every contact of ``pairs`` (non-linear step, Takamatsu 2007).
 
     :param T_rel_observed: observed pose of the moving object in the fixed frame (4x4).
     :param pairs: the contact relation to satisfy.

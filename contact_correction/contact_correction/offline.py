@@ -1,4 +1,5 @@
-"""``correct_trajectory``: offline contact-based correction of a recorded trajectory.
+"""
+``correct_trajectory``: offline contact-based correction of a recorded trajectory.
 
 Input, either
   - a CSV file with this header (one row per frame; ``#`` lines are comments; poses in a common
@@ -69,7 +70,8 @@ def _row(T: np.ndarray) -> List[float]:
 
 
 def read_csv(path: Path) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
-    """Read a trajectory CSV (see module docstring).
+    """
+    Read a trajectory CSV (see module docstring).
 
     :returns: stamps [ns] (N,), moving poses (N, 4, 4), fixed poses (N, 4, 4) or None.
     :raises ValueError: missing columns or a malformed row, naming the line.
@@ -105,7 +107,7 @@ def read_csv(path: Path) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
 
 def read_bag_poses(path: Path, moving_topic: str, fixed_topic: Optional[str]
                    ) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
-    """Moving poses (and fixed poses, newest before each moving one) from a rosbag2 bag."""
+    """Read moving poses (and fixed poses, newest before each moving one) from a rosbag2 bag."""
     from rclpy.serialization import deserialize_message
 
     from stereo_manip_tools.bag_io import get_message_class, read_bag
@@ -167,7 +169,8 @@ def write_csv(path: Path, stamps: np.ndarray, results: Sequence[CorrectionResult
 def plot_fig9(path: Path, stamps: np.ndarray, observed: np.ndarray, fixed: np.ndarray,
               nonlinear: Sequence[CorrectionResult], optimal: Sequence[CorrectionResult]
               ) -> None:
-    """Fig. 9-like figure of a corrected track.
+    """
+    Fig. 9-like figure of a corrected track.
 
     Each frame's correction is split along the constrained and free translation directions of
     *that frame's own* relation (the relation changes along a track: sliding, inserted, pulled
@@ -326,8 +329,12 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
 
 
 def _check_poses(Tm: np.ndarray, Tf: np.ndarray, size: float) -> List[str]:
-    """Warnings on poses implausible for metres (relative distances of hundreds of model
-    sizes, e.g. millimetre poses with metre models)."""
+    """
+    Warn about poses implausible for metres.
+
+    Warnings on poses implausible for metres (relative distances of hundreds of model
+    sizes, e.g. millimetre poses with metre models).
+    """
     rel = [np.linalg.norm(relative_pose(a, b)[:3, 3]) for a, b in zip(Tm, Tf)
            if np.all(np.isfinite(a)) and np.all(np.isfinite(b))]
     if rel and np.median(rel) > 100.0 * max(size, 1e-3):
@@ -363,10 +370,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                              Tm.shape).copy()
     for w in _check_poses(Tm, Tf, moving.size):
         print(f'correct_trajectory: warning: {w}', file=sys.stderr)
-    opts = dict(tolerance=args.tolerance, penetration_tolerance=args.penetration_tolerance,
-                element_margin=args.element_margin, max_translation=args.max_translation,
-                max_rotation=float(np.deg2rad(args.max_rotation_deg)),
-                residual_tolerance=args.residual_tolerance)
+    opts = {'tolerance': args.tolerance, 'penetration_tolerance': args.penetration_tolerance,
+            'element_margin': args.element_margin, 'max_translation': args.max_translation,
+            'max_rotation': float(np.deg2rad(args.max_rotation_deg)),
+            'residual_tolerance': args.residual_tolerance}
     recognition = None if (args.per_frame_detection or relation is not None) else \
         RecognitionOptions(sigma_translation=args.sigma_translation,
                            sigma_rotation=float(np.deg2rad(args.sigma_rotation_deg)),

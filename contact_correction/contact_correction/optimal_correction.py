@@ -1,4 +1,5 @@
-"""Optimal (linear) vision error correction (Section 3, Eqs. 2-9; Takamatsu et al. 2002).
+"""
+Optimal (linear) vision error correction (Section 3, Eqs. 2-9; Takamatsu et al. 2002).
 
 Given the observed pose ``(Theta_E, t_E)`` and a pose ``(Theta_S, t_S)`` satisfying the contact
 relation (the non-linear step), remove from the correction every displacement that the contacts
@@ -41,14 +42,12 @@ from dataclasses import dataclass, field
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
-
 from stereo_manip_tools.transforms import (
     quaternion_from_matrix, rotation_about_axis, rotation_log, skew)
 
-from .contact_relation import (
-    EDGE, FACE, VERTEX, ContactGeometry, ContactPair, evaluate_contacts)
+from .contact_relation import ContactGeometry, ContactPair, EDGE, evaluate_contacts, FACE, VERTEX
 from .nonlinear_correction import constraint_rows
-from .polyhedron import Polyhedron, cross3
+from .polyhedron import cross3, Polyhedron
 
 __all__ = [
     'ConstraintDirections',
@@ -71,7 +70,8 @@ RANK_TOLERANCE = 1e-6
 
 @dataclass
 class ConstraintDirections:
-    """Orthonormal constrained / free directions of a contact relation (fixed frame).
+    """
+    Orthonormal constrained / free directions of a contact relation (fixed frame).
 
     :ivar constrained_translation: shape (k, 3), span of the separating-plane normals.
     :ivar free_translation: shape (3 - k, 3), translations keeping every contact.
@@ -91,7 +91,8 @@ class ConstraintDirections:
 
 @dataclass
 class OptimalResult:
-    """Outcome of :func:`correct_optimal`.
+    """
+    Outcome of :func:`correct_optimal`.
 
     :ivar T_rel: optimal pose of the moving object in the fixed frame (4x4).
     :ivar method: orientation rule used: 'rank0', 'rank2-eq5', 'rank1-eq8', 'rank1-eq9',
@@ -112,7 +113,8 @@ class OptimalResult:
 
 def constraint_matrix(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
                       pairs: Sequence[ContactPair]) -> Tuple[np.ndarray, ContactGeometry]:
-    """Eq. 2 at pose ``T_rel``: one row ``[p_i x f_ij, f_ij]`` per contact / separating plane.
+    """
+    Eq. 2 at pose ``T_rel``: one row ``[p_i x f_ij, f_ij]`` per contact / separating plane.
 
     :returns: ``A`` of shape (K, 6) (screw order ``[s0, s1]``) and the contact geometry.
     """
@@ -131,7 +133,8 @@ def _orth_split(M: np.ndarray, tol: float) -> Tuple[np.ndarray, np.ndarray]:
 
 def rotational_constraint(A: np.ndarray, length_scale: float = 1.0,
                           tol: float = RANK_TOLERANCE) -> np.ndarray:
-    """Rows ``g_i`` of Eq. 3 (orthonormal), shape (r, 3).
+    """
+    Rows ``g_i`` of Eq. 3 (orthonormal), shape (r, 3).
 
     ``s0`` is feasible iff ``A0 s0 = -A1 s1`` for some ``s1``, i.e. iff the component of
     ``A0 s0`` outside the range of ``A1`` vanishes: ``g`` spans the rows of ``(I - P1) A0``
@@ -174,7 +177,8 @@ def constraint_directions(A: np.ndarray, length_scale: float = 1.0,
 
 def optimal_orientation_rank2(R_E: np.ndarray, R_S: np.ndarray,
                               free_axis: np.ndarray) -> np.ndarray:
-    """Eqs. 4-5: optimal orientation when one rotation axis (``free_axis``) is unconstrained.
+    """
+    Eqs. 4-5: optimal orientation when one rotation axis (``free_axis``) is unconstrained.
 
     Solves ``R(m, alpha) R_E = R_a(beta) R_S`` with ``m`` perpendicular to the free axis ``a``
     (a swing-twist split of ``R_S R_E^T``) and returns ``R(m, alpha) R_E``: the non-linear
@@ -189,8 +193,12 @@ def optimal_orientation_rank2(R_E: np.ndarray, R_S: np.ndarray,
 
 
 def _tait_bryan(Q: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Angles (a1, a2, a3) with ``Q = R_b1(a1) R_b2(a2) R_b3(a3)`` for the right-handed
-    orthonormal basis ``B = [b1, b2, b3]`` (columns)."""
+    """
+    Tait-Bryan angles of ``Q`` about the columns of an orthonormal basis.
+
+    Angles (a1, a2, a3) with ``Q = R_b1(a1) R_b2(a2) R_b3(a3)`` for the right-handed
+    orthonormal basis ``B = [b1, b2, b3]`` (columns).
+    """
     M = B.T @ Q @ B     # = Rx(a1) Ry(a2) Rz(a3) in the basis B
     a2 = np.arcsin(np.clip(M[0, 2], -1.0, 1.0))
     return np.array([np.arctan2(-M[1, 2], M[2, 2]), a2, np.arctan2(-M[0, 1], M[0, 0])])
@@ -198,7 +206,7 @@ def _tait_bryan(Q: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 def _unit_normal_and_edge(face_normal: np.ndarray, edge_direction: np.ndarray
                           ) -> Tuple[np.ndarray, np.ndarray]:
-    """Unit face normal ``n`` and unit edge direction ``l`` made exactly orthogonal to it."""
+    """Make a unit face normal ``n`` and a unit edge direction ``l`` exactly orthogonal to it."""
     n = np.asarray(face_normal, dtype=float)
     n = n / np.linalg.norm(n)
     el = np.asarray(edge_direction, dtype=float)
@@ -209,7 +217,8 @@ def _unit_normal_and_edge(face_normal: np.ndarray, edge_direction: np.ndarray
 def optimal_orientation_edge_on_face(R_E: np.ndarray, R_S: np.ndarray, face_normal: np.ndarray,
                                      edge_direction: np.ndarray
                                      ) -> Tuple[np.ndarray, Tuple[float, float, float]]:
-    """Eqs. 6-8 (case 1: an edge of the moving object on a face of the fixed object).
+    """
+    Eqs. 6-8 (case 1: an edge of the moving object on a face of the fixed object).
 
     ``R_m(beta, gamma) = R(n, gamma) R(l, beta)`` keeps the edge (direction ``l``) on the face
     (normal ``n``); the constrained axis is ``c = n x l``. Solves
@@ -230,7 +239,8 @@ def optimal_orientation_edge_on_face(R_E: np.ndarray, R_S: np.ndarray, face_norm
 def optimal_orientation_face_on_edge(R_E: np.ndarray, R_S: np.ndarray, face_normal: np.ndarray,
                                      edge_direction: np.ndarray
                                      ) -> Tuple[np.ndarray, Tuple[float, float, float]]:
-    """Eqs. 6, 7, 9 (case 2: a face of the moving object on an edge of the fixed object).
+    """
+    Eqs. 6, 7, 9 (case 2: a face of the moving object on an edge of the fixed object).
 
     ``R_m(beta, gamma) = R(l, gamma) R(n, beta)`` keeps the face (normal ``n``) on the fixed
     edge (direction ``l``); the constrained axis is ``c = l x n``. Solves
@@ -260,7 +270,8 @@ def optimal_orientation_numerical(moving: Polyhedron, fixed: Polyhedron, T_rel_E
                                   constrained_axes: np.ndarray, max_iterations: int = 50,
                                   residual_tolerance: float = 1e-11
                                   ) -> Tuple[np.ndarray, float]:
-    """General optimal orientation for any rank: ``Theta_opt = exp([C^T alpha]x) Theta_E``.
+    """
+    General optimal orientation for any rank: ``Theta_opt = exp([C^T alpha]x) Theta_E``.
 
     Generalises Eqs. 5 and 7: the optimum differs from the observation only by a rotation
     whose axis lies in the constrained subspace ``C`` (rows: Eq. 3's ``g_i``), and it must
@@ -313,7 +324,8 @@ def _line_fit(points: np.ndarray, tol: float) -> Optional[Tuple[np.ndarray, np.n
 def classify_rank1(moving: Polyhedron, fixed: Polyhedron, T_rel_S: np.ndarray,
                    geometry: ContactGeometry, pairs: Sequence[ContactPair],
                    tol: float = 1e-7) -> Tuple[str, Optional[int], Optional[int]]:
-    """Which of the chapter's rank-1 cases a relation is, at the non-linear solution.
+    """
+    Which of the chapter's rank-1 cases a relation is, at the non-linear solution.
 
     Both cases have every separating plane equal (normal ``n``) and the contact points on one
     line (direction ``l``). Case 1 (Eq. 8) when that line is an edge of the moving object lying
@@ -361,7 +373,8 @@ def classify_rank1(moving: Polyhedron, fixed: Polyhedron, T_rel_S: np.ndarray,
 def optimal_translation(moving: Polyhedron, fixed: Polyhedron, R_opt: np.ndarray,
                         t_observed: np.ndarray, pairs: Sequence[ContactPair],
                         tol: float = RANK_TOLERANCE) -> Tuple[np.ndarray, float, np.ndarray]:
-    """Least-squares translation restricted to the contact constraints.
+    """
+    Least-squares translation restricted to the contact constraints.
 
     With the orientation fixed, ``d_i(t) = f_i . (t - t_E) + d_i(t_E)``; the minimum-norm
     solution ``t = t_E - F^+ d(t_E)`` changes ``t_E`` only within ``span{f_i}`` so the
@@ -421,7 +434,8 @@ def correct_optimal(moving: Polyhedron, fixed: Polyhedron, T_rel_E: np.ndarray,
                     T_rel_S: np.ndarray, pairs: Sequence[ContactPair],
                     rank1_method: str = 'auto', refine: int = 5,
                     residual_tolerance: float = 1e-9) -> OptimalResult:
-    """Optimal correction from the observed pose ``T_rel_E`` and a feasible pose ``T_rel_S``.
+    """
+    Optimal correction from the observed pose ``T_rel_E`` and a feasible pose ``T_rel_S``.
 
     The frame A of Eqs. 4-7 is taken from Eq. 3 at ``T_rel_S``. Where the free axes depend on
     the orientation (rank 1, and rank 2 in general) the result is refined by a fixed-point

@@ -1,4 +1,5 @@
-"""Polyhedral object models for contact reasoning (pure numpy; no rclpy).
+"""
+Polyhedral object models for contact reasoning (pure numpy; no rclpy).
 
 A :class:`Polyhedron` is a closed, consistently oriented polygon mesh whose coplanar adjacent
 polygons are merged into faces. It exposes the topological elements the contact relation of
@@ -25,8 +26,8 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-
-from stereo_manip_tools.mesh_io import PolygonMesh, find_model, load_obj
+from stereo_manip_tools.mesh_io import find_model, load_obj, PolygonMesh
+from stereo_manip_tools.transforms import perpendicular_basis
 
 __all__ = [
     'Polyhedron',
@@ -52,7 +53,8 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def point_triangle_distance(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
-    """Euclidean distance from every point to every triangle.
+    """
+    Euclidean distance from every point to every triangle.
 
     :param points: query points [m], shape (N, 3).
     :param tris: triangle corners [m], shape (M, 3, 3).
@@ -88,7 +90,8 @@ def point_triangle_distance(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
 
 
 def winding_number(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
-    """Generalised winding number of a closed outward-oriented triangle soup at each point.
+    """
+    Generalised winding number of a closed outward-oriented triangle soup at each point.
 
     1 inside, 0 outside, 0.5 on a face (Van Oosterom-Strackee solid angles).
 
@@ -221,12 +224,7 @@ def _triangulate_polygon(V: np.ndarray, loop: np.ndarray, normal: np.ndarray) ->
     idx = [int(i) for i in loop]
     if len(idx) == 3:
         return [idx]
-    # 2D basis of the plane
-    u = np.cross(normal, [1.0, 0.0, 0.0])
-    if np.linalg.norm(u) < 0.5:
-        u = np.cross(normal, [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    w = np.cross(normal, u)
+    u, w = perpendicular_basis(normal)   # 2D basis of the plane
     P2 = {i: np.array([V[i] @ u, V[i] @ w]) for i in idx}
 
     def cross2(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
@@ -265,7 +263,8 @@ def _triangulate_polygon(V: np.ndarray, loop: np.ndarray, normal: np.ndarray) ->
 
 @dataclass
 class Polyhedron:
-    """A closed polyhedron with merged planar faces, edges and vertices (see module docstring).
+    """
+    A closed polyhedron with merged planar faces, edges and vertices (see module docstring).
 
     :ivar name: model name.
     :ivar vertices: vertex positions [m], shape (N, 3), model frame.
@@ -347,12 +346,12 @@ class Polyhedron:
 
     @property
     def n_faces(self) -> int:
-        """Number of merged faces."""
+        """Count the merged faces."""
         return len(self.face_normals)
 
     @property
     def n_edges(self) -> int:
-        """Number of edges (between two different merged faces)."""
+        """Count the edges (between two different merged faces)."""
         return len(self.edge_vertices)
 
     def contains(self, points: np.ndarray) -> np.ndarray:
@@ -368,7 +367,7 @@ class Polyhedron:
         return min_triangle_distance(points, self._face_tris[face])
 
     def face_point(self, face: int) -> np.ndarray:
-        """A point [m] on ``face`` (its first triangle's first corner)."""
+        """Return a point [m] on ``face`` (its first triangle's first corner)."""
         return self.tri_corners[self.face_triangles[face][0], 0]
 
     def transformed_vertices(self, T: np.ndarray) -> np.ndarray:
@@ -379,7 +378,8 @@ class Polyhedron:
 def polyhedron_from_mesh(mesh: PolygonMesh, name: Optional[str] = None,
                          angle_tolerance: float = 1e-6,
                          distance_tolerance: float = 1e-9) -> Polyhedron:
-    """Build a :class:`Polyhedron` from a polygon mesh, merging coplanar adjacent polygons.
+    """
+    Build a :class:`Polyhedron` from a polygon mesh, merging coplanar adjacent polygons.
 
     :param mesh: the model; faces counter-clockwise seen from outside, units metres.
     :param name: model name (default: ``mesh.name``).
@@ -495,7 +495,8 @@ def polyhedron_from_mesh(mesh: PolygonMesh, name: Optional[str] = None,
 
 def load_polyhedron(source: os.PathLike | str | PolygonMesh,
                     directories: Optional[Sequence[Path]] = None) -> Polyhedron:
-    """Load a polyhedron from a model name, a file (OBJ, PLY or STL, metres) or a mesh.
+    """
+    Load a polyhedron from a model name, a file (OBJ, PLY or STL, metres) or a mesh.
 
     A bare name (no suffix, not an existing file) is resolved with
     :func:`stereo_manip_tools.mesh_io.find_model`. OBJ files are read with
@@ -533,7 +534,8 @@ def load_polyhedron(source: os.PathLike | str | PolygonMesh,
 
 def check_model_units(poly: Polyhedron, low: float = 0.005, high: float = 2.0,
                       refuse: float = 10.0) -> List[str]:
-    """Plausibility of a model's size for metres (REP 103).
+    """
+    Plausibility of a model's size for metres (REP 103).
 
     :returns: warnings (size below ``low`` or above ``high`` metres across).
     :raises ValueError: above ``refuse`` metres across (a model in millimetres is 1000x).

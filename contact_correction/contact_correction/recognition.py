@@ -1,4 +1,5 @@
-"""Contact relation recognition under pose noise, frame by frame and over a track.
+"""
+Contact relation recognition under pose noise, frame by frame and over a track.
 
 Detecting the relation with one distance tolerance fails on real stereo poses (errors of a few
 millimetres and degrees): a tight tolerance misses contacts, a wide one takes every element
@@ -44,9 +45,8 @@ from typing import Dict, FrozenSet, Hashable, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .contact_relation import (
-    EDGE, FACE, VERTEX, ContactPair, detect_contact_relation, evaluate_contacts,
-    relative_pose)
-from .polyhedron import Polyhedron, cross3
+    ContactPair, detect_contact_relation, EDGE, evaluate_contacts, FACE, relative_pose, VERTEX)
+from .polyhedron import cross3, Polyhedron
 
 __all__ = ['RecognitionOptions', 'Hypothesis', 'FrameCandidates', 'RelationRecognizer',
            'RelationTracker', 'recognise_track', 'group_key', 'common_state']
@@ -57,7 +57,8 @@ State = FrozenSet[GroupKey]
 
 @dataclass
 class RecognitionOptions:
-    """Parameters of relation recognition (see the module docstring).
+    """
+    Parameters of relation recognition (see the module docstring).
 
     :ivar sigma_translation: stated pose noise, translation of the moving origin [m] (1 sigma).
     :ivar sigma_rotation: stated pose noise, rotation [rad] (1 sigma).
@@ -92,7 +93,11 @@ class RecognitionOptions:
     ambiguity_margin: float = 5.0
 
     def validate(self) -> None:
-        """:raises ValueError: on a non-finite or out-of-range value, naming it."""
+        """
+        Check every value of the options.
+
+        :raises ValueError: on a non-finite or out-of-range value, naming it.
+        """
         for name in ('sigma_translation', 'sigma_rotation', 'sigma_model', 'switch_cost',
                      'ambiguity_margin'):
             v = getattr(self, name)
@@ -108,13 +113,13 @@ class RecognitionOptions:
             raise ValueError(f'beam must be >= 1, got {self.beam}')
 
     def margin(self, moving: Polyhedron) -> float:
-        """The pool margin [m] for ``moving``."""
+        """Return the pool margin [m] for ``moving``."""
         if self.search_margin is not None:
             return float(self.search_margin)
         return 3.0 * (self.sigma_translation + self.sigma_rotation * moving.size / 2.0)
 
     def penalty(self, moving: Polyhedron) -> float:
-        """The per-free-DOF penalty."""
+        """Return the per-free-DOF penalty."""
         if self.free_dof_penalty is not None:
             return float(self.free_dof_penalty)
         r = self.margin(moving) / (np.sqrt(2.0 * np.pi) * self.sigma_translation)
@@ -129,7 +134,8 @@ class RecognitionOptions:
 
 @dataclass
 class Hypothesis:
-    """One candidate relation of a frame.
+    """
+    One candidate relation of a frame.
 
     :ivar state: its group keys.
     :ivar pairs: its pairs (from the frame's pool).
@@ -194,7 +200,8 @@ def _faces_of_edge(poly: Polyhedron, e: int) -> np.ndarray:
 
 def group_key(moving: Polyhedron, fixed: Polyhedron, R: np.ndarray, pair: ContactPair,
               cos_tol: float) -> GroupKey:
-    """Pose-independent key of the contact primitive ``pair`` belongs to.
+    """
+    Pose-independent key of the contact primitive ``pair`` belongs to.
 
     ``R`` rotates moving-model directions into the fixed frame (observed pose). A pair whose
     elements lie on a moving face and a fixed face with opposite normals (within the angular
@@ -240,7 +247,8 @@ def group_key(moving: Polyhedron, fixed: Polyhedron, R: np.ndarray, pair: Contac
 
 
 class RelationRecognizer:
-    """Per-frame candidate relations and their scores (see the module docstring).
+    """
+    Per-frame candidate relations and their scores (see the module docstring).
 
     :param moving: moving object's polyhedron.
     :param fixed: fixed object's polyhedron.
@@ -264,7 +272,8 @@ class RelationRecognizer:
 
     def frame(self, T_moving: np.ndarray, T_fixed: np.ndarray,
               seeds: Sequence[State] = ()) -> FrameCandidates:
-        """Pool, groups and the greedy search of the best relation at one observed pose.
+        """
+        Pool, groups and the greedy search of the best relation at one observed pose.
 
         :param seeds: relations to start the search from and to score in any case (e.g. the
             temporal model's current states).
@@ -320,11 +329,14 @@ class RelationRecognizer:
 
     def _guarded(self, T_rel: np.ndarray, pool: Sequence[ContactPair],
                  distances: np.ndarray) -> np.ndarray:
-        """Pairs whose non-penetration a relation must respect when they are not part of it:
-        a vertex near its face's region, on the outside, or inside the other solid with this
-        face (within the noise) the nearest to it; edge-edge pairs (crossing on both edges).
-        A vertex behind a face's plane but outside the solid (e.g. over the top face next to a
-        hole wall) is not penetrating that face."""
+        """
+        Pairs whose non-penetration a relation must respect when they are not part of it.
+
+        a vertex near its face's region, on the outside, or inside the other solid with this face
+        (within the noise) the nearest to it; edge-edge pairs (crossing on both edges). A vertex
+        behind a face's plane but outside the solid (e.g. over the top face next to a hole wall) is
+        not penetrating that face.
+        """
         out = np.ones(len(pool), dtype=bool)
         tol = 1.5 * self.options.sigma_translation
         R, t = T_rel[:3, :3], T_rel[:3, 3]
@@ -367,8 +379,12 @@ class RelationRecognizer:
         return h
 
     def evaluate(self, state: State) -> Optional[Hypothesis]:
-        """Score of the relation ``state`` in the current frame (None if one of its groups is
-        not in the pool: the relation is not possible within the margin)."""
+        """
+        Score the relation ``state`` in the current frame.
+
+        Score of the relation ``state`` in the current frame (None if one of its groups is
+        not in the pool: the relation is not possible within the margin).
+        """
         fc = self._fc
         if state in fc.hypotheses:
             return fc.hypotheses[state]
@@ -426,7 +442,10 @@ def _switches(a: State, b: State) -> int:
 
 
 class RelationTracker:
-    """Online Viterbi over contact relations (hysteresis): feed frames in order with
+    """
+    Online Viterbi over contact relations (hysteresis).
+
+    Online Viterbi over contact relations (hysteresis): feed frames in order with
     :meth:`update`; :meth:`reset` after a gap in the track.
 
     :param recognizer: the per-frame scorer.
@@ -444,7 +463,8 @@ class RelationTracker:
 
     def update(self, T_moving: np.ndarray, T_fixed: np.ndarray,
                keep_history: bool = False) -> Tuple[Hypothesis, FrameCandidates]:
-        """Relation for the next frame: the end state of the least-cost path so far.
+        """
+        Relation for the next frame: the end state of the least-cost path so far.
 
         :param keep_history: record the back-pointers for :meth:`backtrack` (offline use).
         :returns: (chosen hypothesis, the frame's candidates).
@@ -531,7 +551,8 @@ class RelationTracker:
 def recognise_track(recognizer: RelationRecognizer, moving_poses: np.ndarray,
                     fixed_poses: np.ndarray, smooth: bool = True,
                     return_guards: bool = False) -> tuple:
-    """Relations of a whole track: Viterbi back-tracking (``smooth``) or the online choice.
+    """
+    Relations of a whole track: Viterbi back-tracking (``smooth``) or the online choice.
 
     :param moving_poses: observed poses (N, 4, 4); frames with non-finite poses get the empty
         relation and break the chain.

@@ -1,9 +1,11 @@
-"""Hand-built polygon meshes with known geometry (boxes, prisms, a block with a through hole).
+"""
+Polygon meshes with known geometry (boxes, prisms, blocks with a hole, a slot, a T-slot).
 
-Used by the tests for configurations with analytic answers and as a fallback when the shipped
-models are not installed. The shipped models are loaded with
-:func:`contact_correction.polyhedron.load_polyhedron` (``stereo_manip_tools.mesh_io``).
-All sizes in metres; faces counter-clockwise seen from outside.
+Built with the workspace's mesh builders (:mod:`stereo_manip_tools.shapes`), in this package's
+parameter forms. Used by the tests for configurations with analytic answers and as a fallback
+when the shipped models are not installed. The shipped models are loaded with
+:func:`contact_correction.polyhedron.load_polyhedron` (``stereo_manip_tools.mesh_io``). All
+sizes in metres; faces counter-clockwise seen from outside.
 """
 
 from __future__ import annotations
@@ -13,33 +15,20 @@ from typing import Sequence
 import numpy as np
 
 from stereo_manip_tools.mesh_io import PolygonMesh
+from stereo_manip_tools.shapes import hole_block_mesh, prism_mesh, slot_block_mesh
 
 __all__ = ['box_mesh', 'prism_mesh', 'block_with_hole_mesh', 'block_with_slot_mesh', 't_peg_mesh',
            't_slot_block_mesh']
 
 
-def prism_mesh(profile_yz: Sequence[Sequence[float]], length: float,
-               name: str = 'prism') -> PolygonMesh:
-    """Extrude a simple polygon of the y-z plane (counter-clockwise) along x, centred on x = 0.
-
-    :param profile_yz: polygon corners (y, z) [m], shape (K, 2), counter-clockwise.
-    :param length: extrusion length along x [m].
-    """
-    P = np.asarray(profile_yz, dtype=float)
-    k = len(P)
-    x0, x1 = -length / 2.0, length / 2.0
-    V = np.vstack([np.column_stack([np.full(k, x0), P]), np.column_stack([np.full(k, x1), P])])
-    faces = [list(range(k, 2 * k)), list(range(k - 1, -1, -1))]
-    for j in range(k):
-        jn = (j + 1) % k
-        faces.append([j, jn, k + jn, k + j])
-    return PolygonMesh(V, faces, name)
-
-
 def box_mesh(size: Sequence[float], center: Sequence[float] = (0.0, 0.0, 0.0),
              name: str = 'box') -> PolygonMesh:
-    """Axis-aligned box of ``size`` (sx, sy, sz) [m] centred on ``center`` [m]: 8 vertices,
-    6 quadrilateral faces."""
+    """
+    Axis-aligned box of ``size`` (sx, sy, sz) [m] centred on ``center`` [m].
+
+    8 vertices, 6 quadrilateral faces: a square profile extruded along x (the vertex order the
+    tests' contact relations refer to).
+    """
     sx, sy, sz = (float(s) for s in size)
     profile = [(-sy / 2, -sz / 2), (sy / 2, -sz / 2), (sy / 2, sz / 2), (-sy / 2, sz / 2)]
     m = prism_mesh(profile, sx, name)
@@ -48,40 +37,37 @@ def box_mesh(size: Sequence[float], center: Sequence[float] = (0.0, 0.0, 0.0),
 
 def block_with_hole_mesh(outer: float = 0.16, hole: float = 0.04, height: float = 0.08,
                          name: str = 'hole_block') -> PolygonMesh:
-    """Square block ``outer`` x ``outer`` x ``height`` [m] with a square ``hole`` x ``hole``
+    """
+    Build a square block with a square through hole along z.
+
+    Square block ``outer`` x ``outer`` x ``height`` [m] with a square ``hole`` x ``hole``
     through hole along z; origin at the centre of the top face, +z up (the top face is one
-    merged face with a hole once loaded as a polyhedron)."""
-    A, a, h = outer / 2.0, hole / 2.0, float(height)
-    sq = [(-1, -1), (1, -1), (1, 1), (-1, 1)]
-    V = []
-    for s, z in ((A, 0.0), (a, 0.0), (A, -h), (a, -h)):   # O, I, O', I'
-        V.extend([(s * u, s * v, z) for u, v in sq])
-    O, In, Ob, Ib = 0, 4, 8, 12
-    faces = []
-    for k in range(4):
-        kn = (k + 1) % 4
-        faces.append([O + k, O + kn, In + kn, In + k])          # top ring, +z
-        faces.append([Ob + kn, Ob + k, Ib + k, Ib + kn])        # bottom ring, -z
-        faces.append([Ob + k, Ob + kn, O + kn, O + k])          # outer wall
-        faces.append([In + k, In + kn, Ib + kn, Ib + k])        # hole wall (normal into hole)
-    return PolygonMesh(np.asarray(V, dtype=float), faces, name)
+    merged face with a hole once loaded as a polyhedron).
+    """
+    return hole_block_mesh(outer, height, hole, name)
 
 
 def block_with_slot_mesh(length: float = 0.16, width: float = 0.16, height: float = 0.08,
                          slot_width: float = 0.04, slot_depth: float = 0.04,
                          name: str = 'slot_block') -> PolygonMesh:
-    """Block ``length`` (x) x ``width`` (y) x ``height`` (z) [m] with a slot along x across the
-    top (``slot_width`` in y, ``slot_depth`` in z); origin at the centre of the top face."""
-    W, H, w, s = width / 2.0, float(height), slot_width / 2.0, float(slot_depth)
-    profile = [(-W, -H), (W, -H), (W, 0.0), (w, 0.0), (w, -s), (-w, -s), (-w, 0.0), (-W, 0.0)]
-    return prism_mesh(profile, length, name)
+    """
+    Build a block with a slot along x across its top.
+
+    Block ``length`` (x) x ``width`` (y) x ``height`` (z) [m] with a slot along x across the
+    top (``slot_width`` in y, ``slot_depth`` in z); origin at the centre of the top face.
+    """
+    return slot_block_mesh(length, width, height, slot_width, slot_depth, name)
 
 
 def _prism_along_y(profile_xz: Sequence[Sequence[float]], thickness: float,
                    name: str) -> PolygonMesh:
-    """Extrude a simple polygon of the x-z plane along y (``|y| <= thickness / 2``) with
+    """
+    Extrude a simple polygon of the x-z plane along y.
+
+    Extrude a simple polygon of the x-z plane along y (``|y| <= thickness / 2``) with
     :func:`prism_mesh`, turned by +90 deg about z; the corners may be given in either winding
-    order (the faces are oriented outwards)."""
+    order (the faces are oriented outwards).
+    """
     P = np.asarray(profile_xz, dtype=float)
     area = 0.5 * np.sum(P[:, 0] * np.roll(P[:, 1], -1) - np.roll(P[:, 0], -1) * P[:, 1])
     # prism_mesh wants (y', z) counter-clockwise; the turn maps y' -> -x, so y' = -x
@@ -96,10 +82,14 @@ def _prism_along_y(profile_xz: Sequence[Sequence[float]], thickness: float,
 def t_peg_mesh(bar_width: float = 0.06, bar_height: float = 0.015, stem_width: float = 0.02,
                stem_length: float = 0.035, thickness: float = 0.02,
                name: str = 't_peg') -> PolygonMesh:
-    """T-shaped plate: a bar ``bar_width`` (x) x ``bar_height`` (z) on a stem ``stem_width``
-    x ``stem_length`` below it, ``thickness`` along y [m]. Origin at the centre of the bar's
-    underside (where the stem meets the bar), +z from the stem towards the bar; the two large
-    faces are ``y = +-thickness / 2``."""
+    """
+    T-shaped plate.
+
+    a bar ``bar_width`` (x) x ``bar_height`` (z) on a stem ``stem_width`` x ``stem_length`` below
+    it, ``thickness`` along y [m]. Origin at the centre of the bar's underside (where the stem
+    meets the bar), +z from the stem towards the bar; the two large faces are ``y = +-thickness /
+    2``.
+    """
     B, h, s, L = bar_width / 2.0, float(bar_height), stem_width / 2.0, float(stem_length)
     profile = [(-s, -L), (s, -L), (s, 0.0), (B, 0.0), (B, h), (-B, h), (-B, 0.0), (-s, 0.0)]
     return _prism_along_y(profile, thickness, name)
@@ -109,13 +99,17 @@ def t_slot_block_mesh(width: float = 0.10, height: float = 0.075, thickness: flo
                       bar_slot_width: float = 0.064, bar_slot_depth: float = 0.015,
                       stem_slot_width: float = 0.02, stem_slot_depth: float = 0.04,
                       name: str = 't_slot_block') -> PolygonMesh:
-    """Block ``width`` (x) x ``height`` (z) x ``thickness`` (y) [m] with a T-shaped slot
+    """
+    Build a block with a T-shaped slot through it along y, open at the top.
+
+    Block ``width`` (x) x ``height`` (z) x ``thickness`` (y) [m] with a T-shaped slot
     through it along y, open at the top: a wide part ``bar_slot_width`` x ``bar_slot_depth``
     under the top face and a narrow part ``stem_slot_width`` x ``stem_slot_depth`` below.
     Origin at the centre of the shoulders (the bottom of the wide part), so that
     :func:`t_peg_mesh` with the defaults sits inserted at the identity pose: shoulders under
     the bar, stem walls tight (zero clearance), 1 mm bar clearance each side, 5 mm under the
-    stem, and the peg's large faces and top flush with the block's."""
+    stem, and the peg's large faces and top flush with the block's.
+    """
     W, Bs, s = width / 2.0, bar_slot_width / 2.0, stem_slot_width / 2.0
     top, bottom, D = float(bar_slot_depth), bar_slot_depth - height, float(stem_slot_depth)
     profile = [(-W, bottom), (W, bottom), (W, top), (Bs, top), (Bs, 0.0), (s, 0.0), (s, -D),

@@ -1,4 +1,5 @@
-"""Synthetic assembly tracks with exact contact relations and realistic stereo pose errors.
+"""
+Synthetic assembly tracks with exact contact relations and realistic stereo pose errors.
 
 Used by the benchmark ``bench/contact_tracks.py`` and the tests. Each track is a sequence of
 true relative poses of a moving object in a fixed object's model frame (exactly in contact, or
@@ -23,18 +24,21 @@ from dataclasses import dataclass
 from typing import Callable, Dict, List, Tuple
 
 import numpy as np
-
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
-from .polyhedron import Polyhedron, load_polyhedron
+from .contact_relation import evaluate_contacts
+from .optimal_correction import constraint_matrix
+from .polyhedron import load_polyhedron, Polyhedron
 from .shapes import t_peg_mesh, t_slot_block_mesh
 
-__all__ = ['Track', 'track_models', 'make_tracks', 'noisy_track', 'correlated_noise']
+__all__ = ['Track', 'track_models', 'make_tracks', 'noisy_track', 'correlated_noise',
+           'equivalent_relations']
 
 
 @dataclass
 class Track:
-    """A true track.
+    """
+    A true track.
 
     :ivar name: track name.
     :ivar moving: moving object's polyhedron.
@@ -55,8 +59,11 @@ def _tr(x: float, y: float, z: float) -> np.ndarray:
 
 
 def track_models() -> Dict[str, Polyhedron]:
-    """The polyhedra of the tracks: t_peg, t_slot_block (built) and the shipped peg,
-    hole_block, slot_block."""
+    """
+    Build the polyhedra of the tracks.
+
+    t_peg, t_slot_block (built) and the shipped peg, hole_block, slot_block.
+    """
     out = {'t_peg': load_polyhedron(t_peg_mesh()),
            't_slot_block': load_polyhedron(t_slot_block_mesh())}
     for n in ('peg', 'hole_block', 'slot_block'):
@@ -75,7 +82,7 @@ def _seq(phases: List[Tuple[str, np.ndarray, Callable[[float], np.ndarray]]]
 
 
 def make_tracks(models: Dict[str, Polyhedron]) -> List[Track]:
-    """The four true tracks (see the module docstring)."""
+    """Make the four true tracks (see the module docstring)."""
     tp, tb = models['t_peg'], models['t_slot_block']
     peg, hole, slot = models['peg'], models['hole_block'], models['slot_block']
     lin = np.linspace
@@ -115,8 +122,12 @@ def make_tracks(models: Dict[str, Polyhedron]) -> List[Track]:
 
 def correlated_noise(rng: np.random.Generator, n: int, sigma: float, rho: float
                      ) -> np.ndarray:
-    """AR(1) noise (n, 3), stationary standard deviation ``sigma`` per component and
-    frame-to-frame correlation ``rho``."""
+    """
+    Draw AR(1) noise (n, 3).
+
+    AR(1) noise (n, 3), stationary standard deviation ``sigma`` per component and
+    frame-to-frame correlation ``rho``.
+    """
     e = np.empty((n, 3))
     e[0] = rng.normal(size=3) * sigma
     s = sigma * np.sqrt(1.0 - rho * rho)
@@ -127,10 +138,12 @@ def correlated_noise(rng: np.random.Generator, n: int, sigma: float, rho: float
 
 def noisy_track(track: Track, rng: np.random.Generator, sigma_t: float, sigma_r: float,
                 rho: float = 0.85) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Camera-frame poses of a track: the fixed object at a (random) pose in front of the
-    camera, the moving object's true pose and its observation with correlated errors
-    (translation ``sigma_t`` [m] per axis, rotation ``sigma_r`` [rad] per axis about the moving
-    object's origin).
+    """
+    Camera-frame poses of a track.
+
+    The fixed object at a (random) pose in front of the camera, the moving object's true pose and
+    its observation with correlated errors (translation ``sigma_t`` [m] per axis, rotation
+    ``sigma_r`` [rad] per axis about the moving object's origin).
 
     :returns: (T_fixed (4, 4), T_moving_true (N, 4, 4), T_moving_observed (N, 4, 4)).
     """
@@ -149,3 +162,26 @@ def noisy_track(track: Track, rng: np.random.Generator, sigma_t: float, sigma_r:
         obs[k, :3, :3] = Rn @ true[k, :3, :3]
         obs[k, :3, 3] = true[k, :3, 3] + et[k]
     return T_fixed, true, obs
+
+
+def equivalent_relations(m: Polyhedron, f: Polyhedron, T_true: np.ndarray, truth, pairs) -> bool:
+    """
+    Check that ``pairs`` holds at the true pose and spans the true relation's constraints.
+
+    How the tests and the benchmark score a recognised relation against a track's truth: every
+    pair of ``pairs`` is in contact at ``T_true`` (4x4, moving in fixed frame) and its constraint
+    matrix has the rank of the truth's and of both stacked (translation columns scaled by the
+    moving object's size).
+    """
+    if not truth or not pairs:
+        return not truth and not pairs
+    if np.abs(evaluate_contacts(m, f, T_true, list(pairs)).distances).max() > 1e-6:
+        return False
+    s = np.array([1.0 / m.size] * 3 + [1.0] * 3)
+    A1 = constraint_matrix(m, f, T_true, list(truth))[0] * s
+    A2 = constraint_matrix(m, f, T_true, list(pairs))[0] * s
+
+    def rank(A):
+        sv = np.linalg.svd(A, compute_uv=False)
+        return int(np.count_nonzero(sv > 1e-6 * sv[0]))
+    return rank(A1) == rank(A2) == rank(np.vstack([A1, A2]))

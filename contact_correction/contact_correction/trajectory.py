@@ -1,4 +1,5 @@
-"""Trajectory mode: correct an observed track of the moving object (Section 3, Fig. 9).
+"""
+Trajectory mode: correct an observed track of the moving object (Section 3, Fig. 9).
 
 Two ways to get each frame's relation:
 
@@ -23,11 +24,11 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .contact_relation import ContactPair, evaluate_contacts, penetration_depth, relative_pose
-from .correction import CorrectionResult, correct_pose
+from .correction import correct_pose, CorrectionResult
 from .polyhedron import Polyhedron
 from .recognition import (
-    FrameCandidates, Hypothesis, RecognitionOptions, RelationRecognizer, RelationTracker,
-    recognise_track)
+    FrameCandidates, Hypothesis, recognise_track, RecognitionOptions, RelationRecognizer,
+    RelationTracker)
 
 __all__ = ['correct_trajectory', 'trajectory_components', 'ContactCorrector',
            'correct_recognised']
@@ -41,7 +42,10 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                        guard: Optional[np.ndarray] = None,
                        recognition_margin: Optional[float] = None,
                        **kwargs: Any) -> CorrectionResult:
-    """Correct one frame with a recognised relation, falling back to the frame's next best
+    """
+    Correct one frame with a recognised relation, with fallbacks.
+
+    Correct one frame with a recognised relation, falling back to the frame's next best
     relations and finally to pushing a penetrating observation out.
 
     :param chosen: the relation chosen for the frame.
@@ -141,7 +145,8 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
 
 
 class ContactCorrector:
-    """Online correction of a track: recognition with the temporal model, then correction.
+    """
+    Online correction of a track: recognition with the temporal model, then correction.
 
     :param moving: moving object's polyhedron.
     :param fixed: fixed object's polyhedron.
@@ -177,7 +182,8 @@ def correct_trajectory(moving: Polyhedron, fixed: Polyhedron, moving_poses: np.n
                        relations: Optional[Sequence[Optional[Sequence[ContactPair]]]] = None,
                        recognition: Optional[RecognitionOptions] = None,
                        smooth: bool = True, **kwargs: Any) -> List[CorrectionResult]:
-    """Correct every frame of an observed trajectory.
+    """
+    Correct every frame of an observed trajectory.
 
     :param moving_poses: observed moving-object poses, shape (N, 4, 4).
     :param fixed_poses: fixed-object poses, shape (N, 4, 4), or one (4, 4) pose for all frames.
@@ -222,7 +228,8 @@ def correct_trajectory(moving: Polyhedron, fixed: Polyhedron, moving_poses: np.n
 def trajectory_components(results: Sequence[CorrectionResult], moving_poses: np.ndarray,
                           fixed_poses: np.ndarray, axes: Optional[np.ndarray] = None
                           ) -> Dict[str, np.ndarray]:
-    """Positions of the observed and corrected origins in the fixed frame, projected on axes.
+    """
+    Positions of the observed and corrected origins in the fixed frame, projected on axes.
 
     :param axes: (3, 3) rows = projection axes in the fixed frame; default: the constrained
         and free translation directions of the first corrected frame with contacts (the Fig. 9

@@ -1,11 +1,10 @@
 """Hand-built contact configurations with analytic answers (all poses in the fixed frame)."""
 
-import numpy as np
-import pytest
-
 from contact_correction.polyhedron import polyhedron_from_mesh
 from contact_correction.shapes import (
     block_with_hole_mesh, block_with_slot_mesh, box_mesh, prism_mesh)
+import numpy as np
+import pytest
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 
@@ -35,7 +34,7 @@ def shapes():
 
 @pytest.fixture(scope='session')
 def configs(shapes):
-    """name -> (moving, fixed, true relative pose, expected rotation rank)."""
+    """Map a name to (moving, fixed, true relative pose, expected rotation rank)."""
     out = {}
     out['cube_on_table'] = (shapes['cube'], shapes['table'],
                             make_transform(rot([0, 0, 1], 0.3), [0.01, 0.02, 0.0]), 2)

@@ -1,13 +1,12 @@
 """Bad input never crashes: the pose is passed through unchanged with a flag and a reason."""
 
-import numpy as np
-import pytest
-
 from contact_correction.contact_relation import ContactPair, EDGE, FACE, VERTEX
 from contact_correction.correction import correct_pose
 from contact_correction.polyhedron import polyhedron_from_mesh
 from contact_correction.shapes import box_mesh
 from contact_correction.trajectory import correct_trajectory
+import numpy as np
+import pytest
 from stereo_manip_tools.mesh_io import PolygonMesh
 from stereo_manip_tools.transforms import make_transform
 
@@ -94,8 +93,12 @@ def test_penetrating_observation_is_corrected_out(configs):
 
 
 def test_degenerate_configuration_is_recognised(configs):
-    """A peg-in-hole relation evaluated with the peg at the rim (all contacts at one height,
-    the peg may tilt) is degenerate; inside the hole it is not."""
+    """
+    A peg-in-hole relation with the peg at the rim is degenerate, inside the hole not.
+
+    A peg-in-hole relation evaluated with the peg at the rim (all contacts at one height,
+    the peg may tilt) is degenerate; inside the hole it is not.
+    """
     from contact_correction.correction import _near_degenerate
     from contact_correction.optimal_correction import constraint_matrix
     from contact_correction.contact_relation import detect_contact_relation

@@ -1,12 +1,11 @@
 """Contact relation detection, penetration depth and the Eq. 2 / Eq. 3 constraint ranks."""
 
-import numpy as np
-import pytest
-
 from contact_correction.contact_relation import (
-    EDGE, FACE, VERTEX, detect_contact_relation, evaluate_contacts, penetration_depth)
+    detect_contact_relation, EDGE, evaluate_contacts, FACE, penetration_depth, VERTEX)
 from contact_correction.optimal_correction import (
     constraint_directions, constraint_matrix, rotational_constraint_rank)
+import numpy as np
+import pytest
 from stereo_manip_tools.transforms import make_transform
 
 I4 = np.eye(4)

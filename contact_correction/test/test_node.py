@@ -1,6 +1,7 @@
 """contact_correction_node in-process and as an installed executable; the offline command."""
 
 
+from contact_correction.contact_correction_node import ContactCorrectionNode
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
@@ -10,8 +11,6 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Header
 from stereo_manip_msgs.msg import ContactState
 from stereo_manip_msgs.srv import CorrectTrajectory
-
-from contact_correction.contact_correction_node import ContactCorrectionNode
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_to_matrix
 from stereo_manip_tools.testing import call_service, spin_until, start_executable, \

@@ -1,13 +1,12 @@
 """Non-linear and optimal correction against analytic answers for each rank case."""
 
-import numpy as np
-import pytest
-
 from contact_correction.contact_relation import detect_contact_relation, evaluate_contacts
 from contact_correction.nonlinear_correction import correct_nonlinear
 from contact_correction.optimal_correction import (
     constraint_directions, constraint_matrix, correct_optimal, optimal_orientation_numerical,
     optimal_orientation_rank2)
+import numpy as np
+import pytest
 from stereo_manip_tools.transforms import (
     make_transform, rotation_about_axis, rotation_angle, rotation_log)
 

@@ -1,14 +1,11 @@
-"""correct_trajectory options / node parameters of issue 13: recognised relations by default,
-explicit relation, units, plain CSV, defaults in --help; node extras only with subscribers,
-NaN parameters and non-regular model files refused."""
+"""
+correct_trajectory options / node parameters of issue 13.
+
+Recognised relations by default, explicit relation, units, plain CSV, defaults in --help; node
+extras only with subscribers, NaN parameters and non-regular model files refused.
+"""
 
 import os
-
-from geometry_msgs.msg import PoseStamped
-import numpy as np
-import pytest
-from rclpy.parameter import Parameter
-from std_msgs.msg import Header
 
 import contact_correction.contact_correction_node as node_module
 from contact_correction.contact_correction_node import ContactCorrectionNode
@@ -16,6 +13,11 @@ from contact_correction.contact_relation import penetration_depth
 from contact_correction.offline import main, read_csv
 from contact_correction.shapes import t_peg_mesh, t_slot_block_mesh
 from contact_correction.tracks import make_tracks, noisy_track, track_models
+from geometry_msgs.msg import PoseStamped
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from std_msgs.msg import Header
 from stereo_manip_tools.conversions import matrix_to_pose, ns_to_stamp
 from stereo_manip_tools.mesh_io import PolygonMesh, save_obj
 from stereo_manip_tools.testing import spin_until
@@ -49,8 +51,12 @@ def _write_csv(path, To, Tf):
 
 
 def test_offline_t_peg_flush_with_defaults(tmp_path, t_track):
-    """The issue's scenario as a new user runs it: every inserted (flush) frame corrected, the
-    free translation (normal to the flush faces) unchanged, no penetration left anywhere."""
+    """
+    The issue's scenario as a new user runs it.
+
+    Every inserted (flush) frame corrected, the free translation (normal to the flush faces)
+    unchanged, no penetration left anywhere.
+    """
     peg_file, block_file = _write_models(tmp_path)
     Tf, Tt, To = noisy_track(t_track, np.random.default_rng(21), 1e-3, np.deg2rad(1.0))
     src, out = tmp_path / 'track.csv', tmp_path / 'out.csv'

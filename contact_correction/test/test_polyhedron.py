@@ -1,10 +1,9 @@
 """Polyhedron construction: merged faces, edges, convexity, closedness, file formats."""
 
-import numpy as np
-import pytest
-
 from contact_correction.polyhedron import load_polyhedron, polyhedron_from_mesh
 from contact_correction.shapes import block_with_hole_mesh, block_with_slot_mesh, box_mesh
+import numpy as np
+import pytest
 from stereo_manip_tools.mesh_io import PolygonMesh, save_obj
 
 

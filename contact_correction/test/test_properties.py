@@ -1,13 +1,16 @@
-"""Property tests: for any small pose noise the optimal correction meets every contact, does not
-penetrate, and leaves the free translation and the free rotation exactly as observed."""
+"""
+Property tests.
 
-from hypothesis import given, settings, strategies as st
-import numpy as np
+For any small pose noise the optimal correction meets every contact, does not penetrate, and leaves
+the free translation and the free rotation exactly as observed.
+"""
 
 from contact_correction.contact_relation import detect_contact_relation, penetration_depth
 from contact_correction.correction import correct_pose
 from contact_correction.optimal_correction import constraint_directions, constraint_matrix
 from contact_correction.trajectory import correct_trajectory, trajectory_components
+from hypothesis import given, settings, strategies as st
+import numpy as np
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis, rotation_log
 
 I4 = np.eye(4)

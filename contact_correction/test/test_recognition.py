@@ -1,25 +1,29 @@
-"""Relation recognition under noise, the temporal model, fallbacks, units and model checks
-(issue 13), against ground truth."""
+"""
+Relation recognition against ground truth.
+
+Relation recognition under noise, the temporal model, fallbacks, units and model checks
+(issue 13), against ground truth.
+"""
 
 import os
 from pathlib import Path
-
-import numpy as np
-import pytest
 
 from contact_correction.contact_relation import (
     ContactPair, detect_contact_relation, evaluate_contacts, parse_relation, penetration_depth,
     relative_pose)
 from contact_correction.correction import correct_pose
-from contact_correction.nonlinear_correction import RESIDUAL_TOLERANCE, correct_nonlinear
+from contact_correction.nonlinear_correction import correct_nonlinear, RESIDUAL_TOLERANCE
 from contact_correction.optimal_correction import constraint_directions, constraint_matrix
 from contact_correction.polyhedron import check_model_units, load_polyhedron
 from contact_correction.recognition import (
-    Hypothesis, RecognitionOptions, RelationRecognizer, recognise_track)
+    Hypothesis, recognise_track, RecognitionOptions, RelationRecognizer)
 from contact_correction.shapes import t_peg_mesh, t_slot_block_mesh
-from contact_correction.tracks import make_tracks, noisy_track, track_models
+from contact_correction.tracks import equivalent_relations as equivalent, make_tracks, \
+    noisy_track, track_models
 from contact_correction.trajectory import (
     ContactCorrector, correct_recognised, correct_trajectory)
+import numpy as np
+import pytest
 from stereo_manip_tools.mesh_io import PolygonMesh
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
@@ -36,22 +40,6 @@ def tracks(models):
     return {t.name: t for t in make_tracks(models)}
 
 
-def equivalent(m, f, T_true, truth, pairs):
-    """``pairs`` holds at the true pose and spans the true relation's constraints."""
-    if not truth or not pairs:
-        return not truth and not pairs
-    if np.abs(evaluate_contacts(m, f, T_true, list(pairs)).distances).max() > 1e-6:
-        return False
-    s = np.array([1.0 / m.size] * 3 + [1.0] * 3)
-    A1 = constraint_matrix(m, f, T_true, list(truth))[0] * s
-    A2 = constraint_matrix(m, f, T_true, list(pairs))[0] * s
-
-    def rank(A):
-        sv = np.linalg.svd(A, compute_uv=False)
-        return int(np.count_nonzero(sv > 1e-6 * sv[0]))
-    return rank(A1) == rank(A2) == rank(np.vstack([A1, A2]))
-
-
 def test_t_peg_and_slot_block_are_closed_solids_inserted_at_identity(models):
     peg, block = models['t_peg'], models['t_slot_block']
     assert peg.contains(np.array([[0, 0, 0.007], [0, 0, -0.02], [0.025, 0.005, 0.01]])) \
@@ -64,8 +52,12 @@ def test_t_peg_and_slot_block_are_closed_solids_inserted_at_identity(models):
 
 
 def test_flush_faces_beside_the_slot_are_not_contacts(models):
-    """Inserted flush: the peg's large faces are coplanar with the block's; the relation must
-    leave the translation normal to them free (the issue's rank 6 instead of 5)."""
+    """
+    Inserted flush.
+
+    The peg's large faces are coplanar with the block's; the relation must leave the translation
+    normal to them free (the issue's rank 6 instead of 5).
+    """
     peg, block = models['t_peg'], models['t_slot_block']
     for y in (0.0, 0.005, 0.015):
         T = make_transform(np.eye(3), [0.0, y, 0.0])
@@ -123,8 +115,12 @@ def test_recognition_on_noise_free_tracks_is_exact(models, tracks, name):
 
 
 def test_recognition_on_a_noisy_track_beats_per_frame_detection(models, tracks):
-    """1 mm / 1 deg correlated errors: the recognised relation is right in >= 95 % of the
-    frames in contact; one-tolerance detection (the peer) in far fewer."""
+    """
+    1 mm / 1 deg correlated errors.
+
+    The recognised relation is right in >= 95 % of the frames in contact; one-tolerance detection
+    (the peer) in far fewer.
+    """
     tr = tracks['t_peg_slot_y']
     Tf, _, To = noisy_track(tr, np.random.default_rng(11), 1e-3, np.deg2rad(1.0))
     opts = RecognitionOptions(1e-3, np.deg2rad(1.0))
@@ -150,8 +146,12 @@ def test_recognition_on_a_noisy_track_beats_per_frame_detection(models, tracks):
 
 
 def test_temporal_model_keeps_the_contact_through_an_outlier(models):
-    """Inserted peg; one observation 4 mm up (looks free). The Viterbi track keeps the
-    inserted relation there; the per-frame choice (no switching cost) drops it."""
+    """
+    Inserted peg; one observation 4 mm up (looks free).
+
+    The Viterbi track keeps the inserted relation there; the per-frame choice (no switching cost)
+    drops it.
+    """
     peg, block = models['t_peg'], models['t_slot_block']
     n = 15
     To = np.array([make_transform(np.eye(3), [0, 0, 0]) for _ in range(n)])
@@ -172,8 +172,11 @@ def test_temporal_model_keeps_the_contact_through_an_outlier(models):
 
 
 def test_penetrating_observation_is_never_passed_through(models):
-    """A free relation chosen for a penetrating pose, or a relation that cannot be met:
-    the fallback corrects to a pose without penetration."""
+    """
+    A free relation chosen for a penetrating pose, or a relation that cannot be met.
+
+    The fallback corrects to a pose without penetration.
+    """
     peg, block = models['t_peg'], models['t_slot_block']
     T = make_transform(rotation_about_axis(np.array([0.0, 1.0, 0.0]), 0.02),
                        [0.0015, 0.004, -0.002])

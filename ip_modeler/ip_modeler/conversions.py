@@ -1,4 +1,5 @@
-"""Messages <-> arrays for ip_modeler (what the shared ``stereo_manip_tools.conversions`` lacks).
+"""
+Messages <-> arrays for ip_modeler (what the shared ``stereo_manip_tools.conversions`` lacks).
 
 * :func:`model_to_msg` / :func:`msg_to_model`: ``stereo_manip_msgs/ImplicitPolynomial``;
 * :func:`mesh_to_marker`: a ``visualization_msgs/Marker`` TRIANGLE_LIST of a zero-set mesh;
@@ -11,15 +12,14 @@ from __future__ import annotations
 from typing import Optional, Tuple
 
 from geometry_msgs.msg import Point
+from ip_modeler.fitting import ImplicitPolynomialModel
+from ip_modeler.monomials import MONOMIAL_ORDER
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import ColorRGBA, Header
 from stereo_manip_msgs.msg import ImplicitPolynomial
-from visualization_msgs.msg import Marker
-
-from ip_modeler.fitting import ImplicitPolynomialModel
-from ip_modeler.monomials import MONOMIAL_ORDER
 from stereo_manip_tools.conversions import DEFAULT_MAX_ABS_COORDINATE, read_pointcloud2
+from visualization_msgs.msg import Marker
 
 __all__ = ['model_to_msg', 'msg_to_model', 'mesh_to_marker', 'cloud_to_points']
 
@@ -28,7 +28,7 @@ NORMAL_FIELDS = ('normal_x', 'normal_y', 'normal_z')
 
 def model_to_msg(model: ImplicitPolynomialModel, header: Header, *, rms_distance: float,
                  max_distance: float, point_count: int) -> ImplicitPolynomial:
-    """ImplicitPolynomial message of a fitted model (distances [m], true geometric)."""
+    """Make the ImplicitPolynomial message of a fitted model (distances [m], true geometric)."""
     msg = ImplicitPolynomial(header=header)
     msg.degree = int(model.degree)
     msg.monomial_order = MONOMIAL_ORDER
@@ -45,7 +45,8 @@ def model_to_msg(model: ImplicitPolynomialModel, header: Header, *, rms_distance
 
 
 def msg_to_model(msg: ImplicitPolynomial) -> ImplicitPolynomialModel:
-    """Model of an ImplicitPolynomial message.
+    """
+    Model of an ImplicitPolynomial message.
 
     :raises ValueError: unknown monomial order, or a coefficient count that does not match the
         degree.
@@ -62,7 +63,8 @@ def msg_to_model(msg: ImplicitPolynomial) -> ImplicitPolynomialModel:
 def mesh_to_marker(vertices: np.ndarray, triangles: np.ndarray, header: Header, *,
                    ns: str = 'ip_zero_set', marker_id: int = 0,
                    rgba: Tuple[float, float, float, float] = (0.2, 0.6, 1.0, 0.8)) -> Marker:
-    """TRIANGLE_LIST marker of a mesh (vertices [m] in ``header.frame_id``).
+    """
+    TRIANGLE_LIST marker of a mesh (vertices [m] in ``header.frame_id``).
 
     An empty mesh gives a DELETE marker, so a stale zero set disappears from RViz.
     """
@@ -83,7 +85,8 @@ def mesh_to_marker(vertices: np.ndarray, triangles: np.ndarray, header: Header, 
 
 def cloud_to_points(msg: PointCloud2, use_normals: bool = True
                     ) -> Tuple[np.ndarray, Optional[np.ndarray], int]:
-    """xyz [m] and, if present and wanted, normals of a cloud; unusable rows are removed.
+    """
+    Read xyz [m] and, if present and wanted, normals of a cloud; unusable rows are removed.
 
     The layout is checked by :func:`stereo_manip_tools.conversions.read_pointcloud2`.
 

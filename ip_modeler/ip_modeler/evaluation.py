@@ -1,4 +1,5 @@
-"""Evaluation of implicit-polynomial fits: true distances, normals, spurious sheets, meshes.
+"""
+Evaluation of implicit-polynomial fits: true distances, normals, spurious sheets, meshes.
 
 * :func:`zero_set_mesh` - the zero set ``f = 0`` inside a box as a triangle mesh (marching
   cubes, scikit-image), in the data frame [m].
@@ -15,13 +16,12 @@ from __future__ import annotations
 
 from typing import Dict, Optional, Tuple
 
+from ip_modeler.fitting import ImplicitPolynomialModel
+from ip_modeler.monomials import evaluate_polynomial_on_grid
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-
-from ip_modeler.fitting import ImplicitPolynomialModel
-from ip_modeler.monomials import evaluate_polynomial_on_grid
 
 __all__ = [
     'bounding_region',
@@ -35,7 +35,8 @@ __all__ = [
 
 
 def bounding_region(points: np.ndarray, margin: float = 0.1) -> Tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned box of the points grown by ``margin`` times its largest side on each side.
+    """
+    Axis-aligned box of the points grown by ``margin`` times its largest side on each side.
 
     :returns: (lower (3,), upper (3,)) corners [m].
     """
@@ -47,7 +48,8 @@ def bounding_region(points: np.ndarray, margin: float = 0.1) -> Tuple[np.ndarray
 
 def zero_set_mesh(model: ImplicitPolynomialModel, lower: np.ndarray, upper: np.ndarray,
                   resolution: int = 64) -> Tuple[np.ndarray, np.ndarray]:
-    """Triangle mesh of ``f = 0`` inside the box [lower, upper] by marching cubes.
+    """
+    Triangle mesh of ``f = 0`` inside the box [lower, upper] by marching cubes.
 
     :param model: fitted polynomial.
     :param lower: (3,) box corner [m], data frame.
@@ -79,7 +81,8 @@ def zero_set_mesh(model: ImplicitPolynomialModel, lower: np.ndarray, upper: np.n
 def project_to_zero_set(model: ImplicitPolynomialModel, points: np.ndarray,
                         iterations: int = 30, tol: float = 1e-12
                         ) -> Tuple[np.ndarray, np.ndarray]:
-    """Newton projection ``x <- x - f grad f / |grad f|^2`` onto the zero set.
+    """
+    Newton projection ``x <- x - f grad f / |grad f|^2`` onto the zero set.
 
     :returns: (projected points (N, 3) [m], converged mask (N,)).
     """
@@ -108,7 +111,8 @@ def project_to_zero_set(model: ImplicitPolynomialModel, points: np.ndarray,
 def distance_to_zero_set(model: ImplicitPolynomialModel, points: np.ndarray,
                          mesh: Optional[Tuple[np.ndarray, np.ndarray]] = None,
                          resolution: int = 96) -> np.ndarray:
-    """True distance [m] from each point to the zero set of ``model``.
+    """
+    Compute the true distance [m] from each point to the zero set of ``model``.
 
     :param points: (N, 3) [m].
     :param mesh: optional zero-set mesh (vertices, triangles) covering the points' region;
@@ -136,7 +140,8 @@ def distance_to_zero_set(model: ImplicitPolynomialModel, points: np.ndarray,
 
 def normal_agreement(model: ImplicitPolynomialModel, points: np.ndarray,
                      normals: np.ndarray) -> Dict[str, float]:
-    """Agreement of ``grad f`` at the points with reference normals (sign ignored).
+    """
+    Agreement of ``grad f`` at the points with reference normals (sign ignored).
 
     :returns: ``mean_abs_cos`` and ``mean_angle_deg`` (angle between the lines).
     """
@@ -153,7 +158,8 @@ def normal_agreement(model: ImplicitPolynomialModel, points: np.ndarray,
 def spurious_sheets(mesh: Tuple[np.ndarray, np.ndarray], points: np.ndarray,
                     tol: float, region: Optional[Tuple[np.ndarray, np.ndarray]] = None
                     ) -> Dict[str, float]:
-    """Connected pieces of the zero-set mesh that reach ``region`` but never come near data.
+    """
+    Find connected pieces of the zero-set mesh that reach ``region`` but never come near data.
 
     The mesh should cover more than ``region`` so that a surface leaving the region and
     coming back is not cut into separate pieces by the clipping.
@@ -203,7 +209,8 @@ def spurious_sheets(mesh: Tuple[np.ndarray, np.ndarray], points: np.ndarray,
 def evaluate_model(model: ImplicitPolynomialModel, points: np.ndarray,
                    normals: Optional[np.ndarray] = None, size: Optional[float] = None,
                    resolution: int = 96, sheet_tol: float = 0.1) -> Dict[str, float]:
-    """All evaluation figures of one fit against (clean) reference points.
+    """
+    All evaluation figures of one fit against (clean) reference points.
 
     :param points: (N, 3) reference points [m] (noise-free surface samples if available).
     :param normals: (N, 3) reference normals, optional.

@@ -1,4 +1,5 @@
-"""Implicit-polynomial fitting with adaptive degree (Section 5, Eqs. 19-22) and baselines.
+"""
+Implicit-polynomial fitting with adaptive degree (Section 5, Eqs. 19-22) and baselines.
 
 Pipeline of :func:`fit_implicit_polynomial`:
 
@@ -29,14 +30,13 @@ from dataclasses import dataclass, field
 import time
 from typing import Dict, List, Optional, Tuple
 
+from ip_modeler.incremental_qr import IncrementalQR, STABILIZATION_MODES
+from ip_modeler.monomials import (
+    degree_slice, evaluate_polynomial, evaluate_polynomial_gradient, monomial_count,
+    monomial_gradient_matrices, monomial_matrix, MONOMIAL_ORDER)
 import numpy as np
 from scipy.linalg import eigh, solve_triangular
 from scipy.spatial import cKDTree
-
-from ip_modeler.incremental_qr import IncrementalQR, STABILIZATION_MODES
-from ip_modeler.monomials import (MONOMIAL_ORDER, degree_slice, evaluate_polynomial,
-                                  evaluate_polynomial_gradient, monomial_count,
-                                  monomial_gradient_matrices, monomial_matrix)
 
 __all__ = [
     'ImplicitPolynomialModel',
@@ -62,7 +62,8 @@ DEFAULT_3L_OFFSET = 0.02
 
 @dataclass
 class ImplicitPolynomialModel:
-    """An implicit polynomial surface ``f(x) = 0`` fitted to data (Eq. 19).
+    """
+    An implicit polynomial surface ``f(x) = 0`` fitted to data (Eq. 19).
 
     :ivar degree: total degree n.
     :ivar coefficients: (K,) coefficients in graded_lex order, in normalised coordinates
@@ -100,7 +101,7 @@ class ImplicitPolynomialModel:
         return np.asarray(points_n, dtype=float).reshape(-1, 3) * self.scale + self.centre
 
     def value(self, points: np.ndarray) -> np.ndarray:
-        """f at data-frame points [m], shape (N,) (f is defined on normalised coordinates)."""
+        """Evaluate f at data-frame points [m], shape (N,) (f: of normalised coordinates)."""
         return evaluate_polynomial(self.coefficients, self.normalize(points))
 
     def gradient(self, points: np.ndarray) -> np.ndarray:
@@ -145,7 +146,8 @@ class FitResult:
 
 def check_point_cloud(points: np.ndarray, min_points: int = 1, name: str = 'points',
                       degenerate_tol: float = 1e-6) -> np.ndarray:
-    """Validate a point cloud and return it as float (N, 3).
+    """
+    Validate a point cloud and return it as float (N, 3).
 
     :param points: (N, 3) coordinates.
     :param min_points: the least number of points needed (e.g. the coefficient count).
@@ -180,7 +182,8 @@ def check_point_cloud(points: np.ndarray, min_points: int = 1, name: str = 'poin
 
 
 def normalize_points(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray, float]:
-    """Centre at the centroid and scale into the unit ball.
+    """
+    Centre at the centroid and scale into the unit ball.
 
     :returns: (normalised points (N, 3), centre (3,) [m], scale [m]) with
         ``normalised = (points - centre) / scale`` and ``max |normalised| = 1``.
@@ -195,7 +198,8 @@ def normalize_points(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray, float]
 
 def estimate_normals(points: np.ndarray, k: int = 16,
                      viewpoint: Optional[np.ndarray] = None) -> np.ndarray:
-    """Unit normals by PCA of the k nearest neighbours, oriented toward ``viewpoint``.
+    """
+    Estimate unit normals by PCA of the k nearest neighbours, oriented toward ``viewpoint``.
 
     :param points: (N, 3) [m].
     :param k: neighbours per point (>= 3).
@@ -222,7 +226,8 @@ def estimate_normals(points: np.ndarray, k: int = 16,
 
 def three_layer_data(points_n: np.ndarray, normals: np.ndarray,
                      offset: float) -> Tuple[np.ndarray, np.ndarray]:
-    """3L data set (Blane et al. 2000): points (target 0) and layers +-c along the normals.
+    """
+    3L data set (Blane et al. 2000): points (target 0) and layers +-c along the normals.
 
     :param points_n: (N, 3) normalised points.
     :param normals: (N, 3) outward normals (normalised to unit length here).
@@ -252,7 +257,8 @@ _RIDGE_STEP = 10.0 ** 0.5
 
 def _spurious_sheet_count(model: 'ImplicitPolynomialModel', points: np.ndarray,
                           resolution: int) -> int:
-    """Spurious zero-set pieces of ``model`` judged on the input ``points`` [m] alone.
+    """
+    Spurious zero-set pieces of ``model`` judged on the input ``points`` [m] alone.
 
     Same rule as :func:`ip_modeler.evaluation.spurious_sheets` (box grown 10 %, tolerance 10 %
     of the box's largest side), on a coarser grid.
@@ -301,7 +307,8 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
                             variant: str = 'arnoldi', sheet_check: bool = True,
                             max_sheet_ridge: float = 1e-4,
                             sheet_check_resolution: int = 64) -> FitResult:
-    """Adaptive-degree 3L implicit-polynomial fit by incremental QR (Section 5, Eqs. 19-22).
+    """
+    Adaptive-degree 3L implicit-polynomial fit by incremental QR (Section 5, Eqs. 19-22).
 
     :param points: (N, 3) object points [m].
     :param normals: (N, 3) outward normals; estimated by PCA (oriented toward ``viewpoint``)
@@ -422,7 +429,8 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
 def fit_3l_from_scratch(points: np.ndarray, normals: Optional[np.ndarray], degree: int, *,
                         offset: float = DEFAULT_3L_OFFSET, solver: str = 'lstsq',
                         viewpoint: Optional[np.ndarray] = None) -> ImplicitPolynomialModel:
-    """Baseline: the 3L system of one degree solved from scratch (no reuse across degrees).
+    """
+    Baseline: the 3L system of one degree solved from scratch (no reuse across degrees).
 
     :param solver: ``'lstsq'`` (``numpy.linalg.lstsq``, SVD based) or ``'householder'``
         (``numpy.linalg.qr`` then back substitution).
@@ -441,7 +449,8 @@ def fit_3l_from_scratch(points: np.ndarray, normals: Optional[np.ndarray], degre
 
 
 def fit_taubin(points: np.ndarray, degree: int) -> ImplicitPolynomialModel:
-    """Baseline: Taubin's method, min sum f^2 / sum |grad f|^2 (generalised eigenproblem).
+    """
+    Baseline: Taubin's method, min sum f^2 / sum |grad f|^2 (generalised eigenproblem).
 
     The constant coefficient has no gradient, so it is eliminated in closed form and the
     remaining generalised symmetric eigenproblem ``S a' = lambda G a'`` is solved for its
@@ -467,7 +476,8 @@ def fit_taubin(points: np.ndarray, degree: int) -> ImplicitPolynomialModel:
 def fit_gradient_one(points: np.ndarray, normals: Optional[np.ndarray], degree: int, *,
                      weight: float = 0.01,
                      viewpoint: Optional[np.ndarray] = None) -> ImplicitPolynomialModel:
-    """Baseline: gradient-one fit (Tasdizen et al. 2000).
+    """
+    Baseline: gradient-one fit (Tasdizen et al. 2000).
 
     Minimises ``sum f(x_i)^2 + weight * sum |grad f(x_i) - n_i|^2`` (normalised coordinates),
     a linear least-squares problem, so that f behaves like a signed distance near the data.

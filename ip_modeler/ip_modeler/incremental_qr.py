@@ -1,4 +1,5 @@
-"""Incremental Gram-Schmidt QR for the degree-adaptive implicit-polynomial fit (Section 5).
+"""
+Incremental Gram-Schmidt QR for the degree-adaptive implicit-polynomial fit (Section 5).
 
 Eq. 22 solves the least-squares system ``M a = b`` through ``M = QR`` as ``R a = Q^T b`` by back
 substitution. When the degree rises, the monomials of the new degree are appended to ``M`` as
@@ -55,6 +56,7 @@ from __future__ import annotations
 import math
 from typing import Dict, List, Optional
 
+from ip_modeler.monomials import degree_slice, monomial_count, monomial_shift_indices
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, qr, solve_triangular
 from scipy.linalg.blas import dgemm, dsyrk, dtrsm
@@ -64,8 +66,6 @@ try:
     from scipy.linalg.lapack import dtrcon
 except ImportError:     # SciPy < 1.12 (Ubuntu 24.04 ships 1.11): same estimate, in numpy
     from ip_modeler.trcon import dtrcon
-
-from ip_modeler.monomials import degree_slice, monomial_count, monomial_shift_indices
 
 __all__ = ['IncrementalQR', 'STABILIZATION_MODES', 'VARIANTS']
 
@@ -86,7 +86,8 @@ _BASE_COLUMNS = 8
 
 
 class IncrementalQR:
-    """Thin QR factorisation ``M P = Q R`` of a matrix grown by appending column blocks.
+    """
+    Thin QR factorisation ``M P = Q R`` of a matrix grown by appending column blocks.
 
     ``P`` selects the accepted columns: columns found numerically dependent are dropped and
     their coefficients are zero in :meth:`solve`.
@@ -174,7 +175,7 @@ class IncrementalQR:
     # ----------------------------------------------------------------------------- properties
     @property
     def rank(self) -> int:
-        """Number of accepted columns (columns of Q)."""
+        """Count the accepted columns (columns of Q)."""
         return self._rank
 
     @property
@@ -184,7 +185,8 @@ class IncrementalQR:
 
     @property
     def R(self) -> np.ndarray:
-        """Upper-triangular factor over the accepted columns, shape (rank, rank).
+        """
+        Upper-triangular factor over the accepted columns, shape (rank, rank).
 
         A view for the monomial variants; for ``'arnoldi'`` it is computed as ``T^-1`` (the
         inverse of the accumulated monomial coefficients of Q's columns).
@@ -196,7 +198,8 @@ class IncrementalQR:
 
     @property
     def T(self) -> np.ndarray:
-        """``'arnoldi'`` only: monomial coefficients of Q's columns, ``Q = M[:, :n] T``.
+        """
+        ``'arnoldi'`` only: monomial coefficients of Q's columns, ``Q = M[:, :n] T``.
 
         Shape (n_columns, rank); rows of dropped columns are zero, so over the accepted rows T
         is upper triangular and equals ``R^-1``.
@@ -215,7 +218,7 @@ class IncrementalQR:
         return self._qtb[:self.rank]
 
     def condition_estimate(self) -> float:
-        """max |r_ii| / min |r_ii| over the accepted columns (R's diagonal, Section 5)."""
+        """Return max |r_ii| / min |r_ii| over the accepted columns (R's diagonal, Section 5)."""
         if self.rank == 0:
             return float('inf')
         if self.variant == 'arnoldi':
@@ -244,7 +247,8 @@ class IncrementalQR:
         self._Q, self._R, self._qtb, self._T, self._position = Q, R, qtb, T, position
 
     def append(self, block: np.ndarray) -> np.ndarray:
-        """Append a block of columns (e.g. all monomials of the next degree) and factorise it.
+        """
+        Append a block of columns (e.g. all monomials of the next degree) and factorise it.
 
         :param block: (N, m) new columns of M.
         :returns: boolean mask (m,) of the columns accepted into Q.
@@ -331,7 +335,8 @@ class IncrementalQR:
     def _arnoldi_candidates(self, degree: int, raw: np.ndarray, dropped: np.ndarray,
                             V: np.ndarray, TV: np.ndarray, lead: np.ndarray,
                             B: np.ndarray) -> None:
-        """Generate the degree's new columns: ``x_axis * q_parent`` or the raw monomial.
+        """
+        Generate the degree's new columns: ``x_axis * q_parent`` or the raw monomial.
 
         Column j of the degree is monomial ``m_j = x_axis * m_p``; when ``m_p`` has a Q column
         ``q_p = sum_i T[i, p] m_i``, the candidate is ``x_axis * q_p`` with monomial
@@ -380,7 +385,8 @@ class IncrementalQR:
 
     def _append_arnoldi_degree(self, degree: int, B: np.ndarray,
                                norms: np.ndarray) -> np.ndarray:
-        """Append the monomials of one degree by Arnoldi-style block Gram-Schmidt.
+        """
+        Append the monomials of one degree by Arnoldi-style block Gram-Schmidt.
 
         The new columns are ``x_axis * q_parent`` (see :meth:`_arnoldi_candidates`): with
         the old columns they span the same space as the monomials, but keep a large part of
@@ -540,7 +546,8 @@ class IncrementalQR:
         return status > 0
 
     def _append_bcgs2(self, W: np.ndarray, norms: np.ndarray) -> Optional[np.ndarray]:
-        """Block classical Gram-Schmidt with one re-orthogonalisation (BCGS2), BLAS-3 only.
+        """
+        Block classical Gram-Schmidt with one re-orthogonalisation (BCGS2), BLAS-3 only.
 
         Barlow & Smoktunowicz (2013): ``W1 = (I - Q Q^T) W``, ``W1 = Q1 R1`` (local Householder
         QR; ``Q1 = W1 R1^-1``), ``W2 = (I - Q Q^T) Q1`` and ``W2 = Q2 R2`` (Cholesky QR, exact
@@ -626,7 +633,8 @@ class IncrementalQR:
 
     def _project(self, W: np.ndarray, rows: slice, C: np.ndarray, norms: np.ndarray,
                  cols: np.ndarray) -> None:
-        """Project columns ``cols`` of W off Q[:, rows] (BLAS-3), re-orthogonalising as needed.
+        """
+        Project columns ``cols`` of W off Q[:, rows] (BLAS-3), re-orthogonalising as needed.
 
         The second pass runs on the columns whose norm fell below ``reorth_threshold`` times
         their norm before the pass (the DGKS criterion): there the first pass's rounding error,
@@ -664,7 +672,8 @@ class IncrementalQR:
 
     def _orthogonalise_block(self, W: np.ndarray, norms: np.ndarray, C: np.ndarray, lo: int,
                              hi: int, status: np.ndarray, positions: np.ndarray) -> None:
-        """Orthogonalise columns lo:hi of W among themselves (already orthogonal to old Q).
+        """
+        Orthogonalise columns lo:hi of W among themselves (already orthogonal to old Q).
 
         Recursive halving keeps the work in BLAS-3 products: the left half is factorised, the
         right half is projected on the left half's accepted columns twice, then factorised.
@@ -711,7 +720,8 @@ class IncrementalQR:
 
     # --------------------------------------------------------------------------------- solve
     def solve(self, n_columns: Optional[int] = None, ridge: float = 0.0) -> np.ndarray:
-        """Least-squares coefficients of the first ``n_columns`` offered columns (Eq. 22).
+        """
+        Least-squares coefficients of the first ``n_columns`` offered columns (Eq. 22).
 
         Solves ``R a = Q^T b`` by back substitution over the accepted columns; dropped columns
         get coefficient 0. Regularisation (ridge regression, RR: Tasdizen et al. 2000; Sahin &

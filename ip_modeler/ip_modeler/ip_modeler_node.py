@@ -1,4 +1,5 @@
-"""``ip_modeler_node``: implicit-polynomial model of a segmented object cloud (Section 5).
+"""
+``ip_modeler_node``: implicit-polynomial model of a segmented object cloud (Section 5).
 
 Subscribes ``cloud`` (sensor_msgs/PointCloud2 of one object, sensor-data QoS; normals are used
 when the cloud has ``normal_x/normal_y/normal_z`` and ``use_cloud_normals`` is true, otherwise
@@ -22,27 +23,26 @@ from __future__ import annotations
 
 from typing import Dict, List, Optional, Tuple
 
-import numpy as np
-import rclpy
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
-from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
-from rclpy.parameter import Parameter
-from sensor_msgs.msg import PointCloud2
-from stereo_manip_msgs.msg import ImplicitPolynomial
-from stereo_manip_msgs.srv import FitImplicitPolynomial
-from visualization_msgs.msg import Marker
-
 from ip_modeler.conversions import cloud_to_points, mesh_to_marker, model_to_msg
 from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_set_mesh
 from ip_modeler.fitting import DEFAULT_3L_OFFSET, estimate_normals, fit_implicit_polynomial, \
     MAX_SUPPORTED_DEGREE
 from ip_modeler.incremental_qr import STABILIZATION_MODES
+import numpy as np
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+import rclpy
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
+from stereo_manip_msgs.msg import ImplicitPolynomial
+from stereo_manip_msgs.srv import FitImplicitPolynomial
 from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
     input_qos_descriptor, input_qos_profile, int_descriptor as _int, \
     reject_nonfinite_parameters
-from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
+    spin_until_shutdown
+from visualization_msgs.msg import Marker
 
 __all__ = ['IpModelerNode', 'main']
 
@@ -112,7 +112,7 @@ class IpModelerNode(Node):
     # --- parameters -----------------------------------------------------------------------
 
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
-        """Checks beyond the descriptors' ranges."""
+        """Check what the descriptors' ranges do not."""
         for p in params:
             if p.name == 'input_qos' and p.value not in INPUT_QOS_CHOICES:
                 return SetParametersResult(
@@ -138,7 +138,8 @@ class IpModelerNode(Node):
 
     def fit_cloud(self, msg: PointCloud2, max_degree: int = 0, target_rms: float = 0.0
                   ) -> Tuple[ImplicitPolynomial, Marker]:
-        """Fit one cloud; returns the messages to publish.
+        """
+        Fit one cloud; returns the messages to publish.
 
         :raises ValueError: bad cloud or request, with the reason.
         """
@@ -229,10 +230,4 @@ def main(args: Optional[List[str]] = None) -> None:
     """Run the node (bad start-up parameters: one line on stderr, exit code 1)."""
     rclpy.init(args=args)
     node = create_node_or_exit(IpModelerNode, 'ip_modeler_node')
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)

@@ -1,4 +1,5 @@
-"""Monomial bases of implicit polynomials in the graded order of Eq. 19 (pure numpy).
+"""
+Monomial bases of implicit polynomials in the graded order of Eq. 19 (pure numpy).
 
 An implicit polynomial (IP) of degree ``n`` in three variables is
 ``f(x) = sum_{i+j+k <= n} a_ijk x^i y^j z^k = m(x)^T a`` (Eq. 19). The monomials are ordered
@@ -33,7 +34,7 @@ MONOMIAL_ORDER = 'graded_lex'
 
 
 def monomial_count(degree: int) -> int:
-    """Number of monomials of total degree <= ``degree``: (n+1)(n+2)(n+3)/6."""
+    """Count the monomials of total degree <= ``degree``: (n+1)(n+2)(n+3)/6."""
     if degree < 0:
         raise ValueError(f'degree must be >= 0, got {degree}')
     return (degree + 1) * (degree + 2) * (degree + 3) // 6
@@ -52,7 +53,8 @@ def _exponents(degree: int) -> np.ndarray:
 
 
 def monomial_exponents(degree: int) -> np.ndarray:
-    """Exponents ``(i, j, k)`` of the monomials up to ``degree`` in graded_lex order.
+    """
+    Exponents ``(i, j, k)`` of the monomials up to ``degree`` in graded_lex order.
 
     :param degree: maximum total degree n >= 0.
     :returns: read-only int array of shape (monomial_count(n), 3).
@@ -79,7 +81,8 @@ def _powers(points: np.ndarray, degree: int) -> np.ndarray:
 
 
 def monomial_matrix(points: np.ndarray, degree: int, min_degree: int = 0) -> np.ndarray:
-    """Design matrix M whose row p is m(x_p)^T (Eq. 20), columns of degrees min_degree..degree.
+    """
+    Design matrix M whose row p is m(x_p)^T (Eq. 20), columns of degrees min_degree..degree.
 
     :param points: (N, 3) coordinates (normally the normalised coordinates of the fit).
     :param degree: highest total degree n.
@@ -115,7 +118,8 @@ def _derivative_index(degree: int) -> Tuple[np.ndarray, np.ndarray]:
 
 
 def monomial_shift_indices(degree: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Neighbours of each monomial in the graded_lex basis up to ``degree``.
+    """
+    Neighbours of each monomial in the graded_lex basis up to ``degree``.
 
     :param degree: maximum total degree n >= 0.
     :returns: ``(lowered, raised)``, int arrays of shape (3, monomial_count(n)):
@@ -143,7 +147,8 @@ def _shift_indices(degree: int) -> Tuple[np.ndarray, np.ndarray]:
 
 def monomial_gradient_matrices(points: Optional[np.ndarray], degree: int,
                                M: Optional[np.ndarray] = None) -> np.ndarray:
-    """Partial derivatives of the monomials: G[axis] row p is d m(x_p)^T / d x_axis.
+    """
+    Partial derivatives of the monomials: G[axis] row p is d m(x_p)^T / d x_axis.
 
     :param points: (N, 3) coordinates (unused when ``M`` is given).
     :param degree: highest total degree n.
@@ -168,7 +173,8 @@ def _check_coefficients(coefficients: np.ndarray) -> Tuple[np.ndarray, int]:
 
 
 def evaluate_polynomial(coefficients: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """f(x) = m(x)^T a at each point; the degree follows from the coefficient count.
+    """
+    f(x) = m(x)^T a at each point; the degree follows from the coefficient count.
 
     :param coefficients: (K,) graded_lex coefficients.
     :param points: (N, 3) coordinates in the polynomial's (normalised) frame.
@@ -204,7 +210,8 @@ def coefficient_tensor(coefficients: np.ndarray) -> np.ndarray:
 
 def evaluate_polynomial_on_grid(coefficients: np.ndarray, xs: np.ndarray, ys: np.ndarray,
                                 zs: np.ndarray) -> np.ndarray:
-    """f on the tensor grid xs x ys x zs by separable contraction (fast marching-cubes input).
+    """
+    Evaluate f on the tensor grid xs x ys x zs by separable contraction (marching-cubes input).
 
     :returns: array of shape (len(xs), len(ys), len(zs)).
     """

@@ -1,4 +1,5 @@
-"""``fit_ip``: fit an implicit polynomial to a point file; write coefficients and a figure.
+"""
+``fit_ip``: fit an implicit polynomial to a point file; write coefficients and a figure.
 
 Usage::
 
@@ -23,20 +24,20 @@ from pathlib import Path
 import sys
 from typing import List, Optional, Tuple
 
-import numpy as np
-
 from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_set_mesh
 from ip_modeler.fitting import (DEFAULT_3L_OFFSET, estimate_normals, fit_implicit_polynomial,
                                 FitResult, MAX_SUPPORTED_DEGREE)
 from ip_modeler.incremental_qr import STABILIZATION_MODES
-from ip_modeler.monomials import MONOMIAL_ORDER, monomial_exponents
+from ip_modeler.monomials import monomial_exponents, MONOMIAL_ORDER
 from ip_modeler.shapes import add_noise, sample_shape, SHAPES, visible_half
+import numpy as np
 
 __all__ = ['load_points', 'write_results', 'plot_fit', 'main']
 
 
 def load_points(path: Path) -> Tuple[np.ndarray, Optional[np.ndarray]]:
-    """Points (N, 3) [m] and normals (N, 3) or None from a point file.
+    """
+    Points (N, 3) [m] and normals (N, 3) or None from a point file.
 
     :raises ValueError: unknown format or wrong column count, naming the file.
     :raises FileNotFoundError: missing file.
@@ -136,7 +137,7 @@ def plot_fit(path: Path, points: np.ndarray, mesh: Tuple[np.ndarray, np.ndarray]
 
 
 def _parse(argv: Optional[List[str]]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog='fit_ip', description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog='fit_ip', description=__doc__.strip().splitlines()[0])
     p.add_argument('input', nargs='?', type=Path, help='point file (.npy/.xyz/.txt/.csv/.ply)')
     p.add_argument('--shape', choices=sorted(SHAPES), help='fit synthetic data instead')
     p.add_argument('--size', type=float, default=0.08, help='synthetic shape size [m]')

@@ -1,4 +1,5 @@
-"""Analytic test shapes sampled with exact outward normals (benchmarks and tests; pure numpy).
+"""
+Analytic test shapes sampled with exact outward normals (benchmarks and tests; pure numpy).
 
 Each sampler returns ``(points (N, 3) [m], normals (N, 3) unit, outward)`` for a shape centred
 at the origin. ``size`` is the object's largest extent [m] (edge of the cube, diameter of the
@@ -73,7 +74,7 @@ def sample_cube(n: int, size: float = 0.08, rng: Optional[np.random.Generator] =
 
 def sample_cylinder(n: int, size: float = 0.08, rng: Optional[np.random.Generator] = None
                     ) -> Sample:
-    """Closed cylinder (with caps) along z, diameter = height = ``size``."""
+    """Sample a closed cylinder (with caps) along z, diameter = height = ``size``."""
     rng = rng or np.random.default_rng(0)
     r = h = 0.5 * size
     side_area, cap_area = 2 * np.pi * r * 2 * h, 2 * np.pi * r * r
@@ -115,7 +116,8 @@ def sample_torus(n: int, size: float = 0.08, tube_ratio: float = 0.3,
 
 def sample_superquadric(n: int, size: float = 0.08, exponent: float = 3.0,
                         rng: Optional[np.random.Generator] = None) -> Sample:
-    """Superellipsoid ``|x/h|^e + |y/h|^e + |z/h|^e = 1``, h = size/2 (e = 3: rounded cube).
+    """
+    Superellipsoid ``|x/h|^e + |y/h|^e + |z/h|^e = 1``, h = size/2 (e = 3: rounded cube).
 
     Points come from radially projected random directions (not area-uniform).
     """
@@ -148,7 +150,8 @@ def sample_shape(name: str, n: int, size: float = 0.08,
 
 def visible_half(points: np.ndarray, normals: np.ndarray,
                  view_direction=(0.3, -0.4, 0.866)) -> Sample:
-    """Keep the points whose outward normal faces the viewer (a one-sided, half view).
+    """
+    Keep the points whose outward normal faces the viewer (a one-sided, half view).
 
     :param view_direction: direction from the object toward the sensor.
     """

@@ -1,4 +1,5 @@
-"""Reciprocal condition number of a triangular matrix: LAPACK ``dtrcon`` for SciPy < 1.12.
+"""
+Reciprocal condition number of a triangular matrix: LAPACK ``dtrcon`` for SciPy < 1.12.
 
 ``scipy.linalg.lapack.dtrcon`` exists from SciPy 1.12; Ubuntu 24.04 ships SciPy 1.11, where the
 import fails. :func:`dtrcon` here follows LAPACK's algorithm step by step -- ``dlantr`` for the
@@ -20,12 +21,13 @@ _ITMAX = 5
 
 
 def _sign(x: np.ndarray) -> np.ndarray:
-    """LAPACK's sign vector: +1 where x >= 0, else -1."""
+    """Return LAPACK's sign vector: +1 where x >= 0, else -1."""
     return np.where(x >= 0.0, 1.0, -1.0)
 
 
 def norm1_estimate(apply, apply_t, n: int) -> float:
-    """LAPACK ``dlacn2``: lower estimate of ``||A||_1`` from products ``A x`` and ``A^T x``.
+    """
+    LAPACK ``dlacn2``: lower estimate of ``||A||_1`` from products ``A x`` and ``A^T x``.
 
     :param apply: ``x -> A @ x`` for shape (n,) vectors.
     :param apply_t: ``x -> A.T @ x``.
@@ -62,7 +64,8 @@ def norm1_estimate(apply, apply_t, n: int) -> float:
 
 def dtrcon(a: np.ndarray, norm: str = '1', uplo: str = 'U', diag: str = 'N'
            ) -> Tuple[float, int]:
-    """``scipy.linalg.lapack.dtrcon``: ``(rcond, info)`` of the triangular matrix ``a``.
+    """
+    ``scipy.linalg.lapack.dtrcon``: ``(rcond, info)`` of the triangular matrix ``a``.
 
     :param norm: ``'1'``/``'O'`` (1-norm) or ``'I'`` (infinity norm).
     :param uplo: ``'U'`` (upper triangle of ``a`` used) or ``'L'``.

@@ -1,19 +1,19 @@
 """Pure-core tests of ip_modeler: monomial order, incremental QR, fitting, bad input."""
 
-import numpy as np
-import pytest
 from hypothesis import given, settings, strategies as st
-
 from ip_modeler.evaluation import distance_to_zero_set, evaluate_model, zero_set_mesh
-from ip_modeler.fitting import (ImplicitPolynomialModel, check_point_cloud, estimate_normals,
-                                fit_3l_from_scratch, fit_gradient_one, fit_implicit_polynomial,
-                                fit_taubin, normalize_points, three_layer_data)
+from ip_modeler.fitting import (
+    check_point_cloud, estimate_normals, fit_3l_from_scratch, fit_gradient_one,
+    fit_implicit_polynomial, fit_taubin, ImplicitPolynomialModel, normalize_points,
+    three_layer_data)
 from ip_modeler.incremental_qr import IncrementalQR
 from ip_modeler.monomials import (degree_slice, evaluate_polynomial,
                                   evaluate_polynomial_gradient, evaluate_polynomial_on_grid,
                                   monomial_count, monomial_exponents, monomial_matrix,
                                   monomial_shift_indices)
 from ip_modeler.shapes import sample_shape, visible_half
+import numpy as np
+import pytest
 
 SIZE = 0.08
 
@@ -135,8 +135,12 @@ def _three_layer_matrix(shape, n, degree, seed, half=True):
 
 
 def test_arnoldi_drops_the_columns_monomial_gram_schmidt_drops():
-    """3L data of a sphere: x^2 + y^2 + z^2 is constant on each layer, so from degree 6 on the
-    product of the three layers' equations vanishes on all points: exactly dependent columns."""
+    """
+    3L data of a sphere.
+
+    x^2 + y^2 + z^2 is constant on each layer, so from degree 6 on the product of the three layers'
+    equations vanishes on all points: exactly dependent columns.
+    """
     X, b, M = _three_layer_matrix('sphere', 400, 7, 6, half=False)
     arnoldi = IncrementalQR(b, variant='arnoldi', points=X)
     classical = IncrementalQR(b, variant='classical')

@@ -1,6 +1,12 @@
 """ip_modeler_node: in-process (rclpy) and as an installed executable (own process)."""
 
 
+from ip_modeler.conversions import cloud_to_points, model_to_msg, msg_to_model
+from ip_modeler.evaluation import distance_to_zero_set
+from ip_modeler.fitting import ImplicitPolynomialModel
+from ip_modeler.ip_modeler_node import IpModelerNode
+from ip_modeler.monomials import monomial_count
+from ip_modeler.shapes import sample_shape
 import numpy as np
 import pytest
 import rclpy
@@ -9,16 +15,9 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from stereo_manip_msgs.msg import ImplicitPolynomial
 from stereo_manip_msgs.srv import FitImplicitPolynomial
-from visualization_msgs.msg import Marker
-
-from ip_modeler.conversions import cloud_to_points, model_to_msg, msg_to_model
-from ip_modeler.evaluation import distance_to_zero_set
-from ip_modeler.fitting import ImplicitPolynomialModel
-from ip_modeler.ip_modeler_node import IpModelerNode
-from ip_modeler.monomials import monomial_count
-from ip_modeler.shapes import sample_shape
 from stereo_manip_tools.conversions import xyz_to_pointcloud2
 from stereo_manip_tools.testing import call_service, spin_until, start_executable
+from visualization_msgs.msg import Marker
 
 SIZE = 0.08
 CENTRE = np.array([0.05, -0.02, 0.5])  # object 0.5 m in front of the camera

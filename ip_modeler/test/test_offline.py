@@ -3,13 +3,12 @@
 import json
 import subprocess
 
-import numpy as np
-import pytest
-
-from ip_modeler.fitting import ImplicitPolynomialModel
 from ip_modeler.evaluation import distance_to_zero_set
+from ip_modeler.fitting import ImplicitPolynomialModel
 from ip_modeler.offline import load_points, main
 from ip_modeler.shapes import sample_shape
+import numpy as np
+import pytest
 from stereo_manip_tools.testing import executable_path
 
 SIZE = 0.08

@@ -1,10 +1,13 @@
-"""The dtrcon fallback (SciPy < 1.12) returns LAPACK's estimate: equal to scipy's dtrcon where
-this SciPy has it, and within [exact, n * exact] of the exact reciprocal condition number."""
+"""
+The dtrcon fallback (SciPy < 1.12) returns LAPACK's estimate.
 
-import numpy as np
-import pytest
+Equal to scipy's dtrcon where this SciPy has it, and within [exact, n * exact] of the exact
+reciprocal condition number.
+"""
 
 from ip_modeler.trcon import dtrcon
+import numpy as np
+import pytest
 
 
 def exact_rcond(t: np.ndarray, norm: str) -> float:

@@ -1,4 +1,5 @@
-"""The square-marker pose ambiguity (IPPE twin) as a structured outlier model (pure numpy).
+"""
+The square-marker pose ambiguity (IPPE twin) as a structured outlier model (pure numpy).
 
 A planar marker seen by a camera has two poses that explain its image almost equally well
 (Collins & Bartoli 2014, IPPE; OpenCV's ``SOLVEPNP_IPPE_SQUARE`` returns both): under the
@@ -22,9 +23,8 @@ flipped frame is repaired instead of dropped.
 
 from __future__ import annotations
 
-import numpy as np
-
 from joint_estimator.common import relative_track
+import numpy as np
 
 __all__ = ['marker_twins', 'relative_candidates', 'two_link_candidates', 'AXIS_INDEX',
            'MIN_MARKER_DISTANCE']
@@ -38,7 +38,8 @@ AXIS_INDEX = {'x': 0, 'y': 1, 'z': 2}
 
 
 def marker_twins(poses: np.ndarray, normal_axis: int = 2) -> np.ndarray:
-    """The ambiguous twin of every marker pose in the camera frame.
+    """
+    Return the ambiguous twin of every marker pose in the camera frame.
 
     :param poses: (N, 4, 4) poses of the marker in the camera's frame ``^C T_M`` [m].
     :param normal_axis: column of the marker's rotation that is its normal (2 = z).
@@ -71,17 +72,25 @@ def marker_twins(poses: np.ndarray, normal_axis: int = 2) -> np.ndarray:
 
 
 def relative_candidates(poses: np.ndarray, normal_axis: int = 2) -> np.ndarray:
-    """Candidates (N, 2, 4, 4) of a relative track ``^B T_A`` where link B is the camera and
-    link A carries the marker: the pose and its twin (:func:`marker_twins`)."""
+    """
+    Candidates (N, 2, 4, 4) of a relative track seen by a camera on link B.
+
+    Candidates (N, 2, 4, 4) of a relative track ``^B T_A`` where link B is the camera and
+    link A carries the marker: the pose and its twin (:func:`marker_twins`).
+    """
     T = np.asarray(poses, dtype=float)
     return np.stack([T, marker_twins(T, normal_axis)], axis=1)
 
 
 def two_link_candidates(link_a: np.ndarray, link_b: np.ndarray,
                         normal_axis: int = 2) -> np.ndarray:
-    """Candidates (N, 4, 4, 4) of the relative track when both links carry markers whose poses
+    """
+    Candidates (N, 4, 4, 4) of the relative track when both links carry markers.
+
+    Candidates (N, 4, 4, 4) of the relative track when both links carry markers whose poses
     are given in the camera's frame: ``(A, B), (twin A, B), (A, twin B), (twin A, twin B)``;
-    the first is the relative track of the poses as given."""
+    the first is the relative track of the poses as given.
+    """
     A = np.asarray(link_a, dtype=float)
     B = np.asarray(link_b, dtype=float)
     A2, B2 = marker_twins(A, normal_axis), marker_twins(B, normal_axis)

@@ -1,4 +1,5 @@
-"""Shared types, input validation and batched rotation helpers of the joint estimator (pure numpy).
+"""
+Shared types, input validation and track helpers of the joint estimator (pure numpy).
 
 The estimator works on the relative track of link A in link B's frame: ``T[t] = ^B T_A(t)``, an
 (N, 4, 4) array of rigid transforms (metres, radians), ``R[t] = ^B Theta_A(t)`` and
@@ -12,7 +13,10 @@ import enum
 from typing import Optional, Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+# the batched rotation helpers live in stereo_manip_tools.transforms (the workspace's one home
+# of rotation math); re-exported here for the estimator's modules
+from stereo_manip_tools.transforms import minimal_rotations_onto, perpendicular_basis, \
+    rotation_vectors, rotations_about_axis, signed_angles_about_axis
 
 __all__ = [
     'JointType',
@@ -60,7 +64,8 @@ class DegenerateMotionError(ValueError):
 
 @dataclass
 class JointFit:
-    """A fitted joint with its corrected track.
+    """
+    A fitted joint with its corrected track.
 
     Directions are unit vectors, points in metres. ``axis_in_a``/``axis_in_b`` are ``^A l`` and
     ``^B l`` (the plane normal for PLANAR, the sliding direction for PRISMATIC, zero for FIXED and
@@ -129,7 +134,7 @@ class JointFit:
 
     @property
     def repaired_indices(self) -> np.ndarray:
-        """Indices (int array) of the frames whose ambiguous twin pose was used."""
+        """Return the indices (int array) of the frames whose ambiguous twin pose was used."""
         if self.repaired is None:
             return np.zeros(0, dtype=int)
         return np.flatnonzero(self.repaired)
@@ -141,7 +146,7 @@ class JointFit:
 
     @property
     def outlier_indices(self) -> np.ndarray:
-        """Indices (int array) of the frames rejected as outliers."""
+        """Return the indices (int array) of the frames rejected as outliers."""
         return np.flatnonzero(~self.inliers)
 
     @property
@@ -158,7 +163,8 @@ class JointFit:
 def validate_track(poses: np.ndarray, stamps_ns: Optional[Sequence[int]] = None,
                    min_poses: int = 1, tol: float = 1e-5,
                    name: str = 'relative track') -> np.ndarray:
-    """Check a pose track and return it as a float (N, 4, 4) array, raising ``ValueError``.
+    """
+    Check a pose track and return it as a float (N, 4, 4) array, raising ``ValueError``.
 
     :param poses: (N, 4, 4) rigid transforms.
     :param stamps_ns: optional (N,) stamps [ns]; they must be strictly increasing.
@@ -203,7 +209,8 @@ def validate_track(poses: np.ndarray, stamps_ns: Optional[Sequence[int]] = None,
 
 
 def relative_track(link_a: np.ndarray, link_b: np.ndarray) -> np.ndarray:
-    """Relative track ``^B T_A = (^W T_B)^-1 ^W T_A`` from two tracks in a common frame W.
+    """
+    Relative track ``^B T_A = (^W T_B)^-1 ^W T_A`` from two tracks in a common frame W.
 
     :param link_a: (N, 4, 4) poses of link A in W.
     :param link_b: (N, 4, 4) poses of link B in W (same stamps as link A).
@@ -235,72 +242,10 @@ def compose_track(R: np.ndarray, p: np.ndarray) -> np.ndarray:
     return T
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
-def rotations_about_axis(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula for many angles: (N, 3, 3) rotations of ``angles`` [rad] about a unit
-    ``axis`` (3,)."""
-    K = _skew(np.asarray(axis, dtype=float))
-    a = np.asarray(angles, dtype=float).reshape(-1, 1, 1)
-    return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
-
-
-def rotation_vectors(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors (N, 3) [rad] of rotations (N, 3, 3) (robust near 0 and pi)."""
-    return Rotation.from_matrix(R).as_rotvec()
-
-
-def signed_angles_about_axis(R: np.ndarray, axis: np.ndarray) -> np.ndarray:
-    """Angle [rad] in (-pi, pi] of rotations (N, 3, 3) known to be about the unit ``axis``."""
-    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
-    c = (np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0
-    return np.arctan2(0.5 * (w @ axis), c)
-
-
-def minimal_rotations_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest rotations (N, 3, 3) taking each unit vector ``a[i]`` (N, 3) onto unit ``b`` (3,).
-
-    Rodrigues with axis ``a x b``; for (nearly) antiparallel pairs a half turn about an axis
-    perpendicular to ``b`` is used.
-    """
-    a = np.asarray(a, dtype=float)
-    c = np.stack([a[:, 1] * b[2] - a[:, 2] * b[1], a[:, 2] * b[0] - a[:, 0] * b[2],
-                  a[:, 0] * b[1] - a[:, 1] * b[0]], axis=1)
-    s = np.sqrt(np.einsum('ni,ni->n', c, c))
-    d = np.clip(a @ b, -1.0, 1.0)
-    out = np.empty((a.shape[0], 3, 3))
-    ok = s > 1e-12
-    if ok.any():
-        k = c[ok] / s[ok, None]
-        K = np.zeros((k.shape[0], 3, 3))
-        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-        K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-        # sin = s, cos = d (exact, no arctan round trip)
-        out[ok] = np.eye(3) + s[ok, None, None] * K + (1.0 - d[ok, None, None]) * (K @ K)
-    for i in np.flatnonzero(~ok):
-        if d[i] > 0:
-            out[i] = np.eye(3)
-        else:
-            e1, _ = perpendicular_basis(b)
-            out[i] = 2.0 * np.outer(e1, e1) - np.eye(3)
-    return out
-
-
-def perpendicular_basis(n: np.ndarray) -> tuple:
-    """Two unit vectors (3,) completing unit ``n`` to a right-handed orthonormal basis."""
-    n = np.asarray(n, dtype=float)
-    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
-    e1 = np.cross(n, helper)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(n, e1)
-
-
 def frame_residuals(R: np.ndarray, p: np.ndarray, R_hat: np.ndarray, p_hat: np.ndarray,
                     sigma_position: float, sigma_rotation: float) -> tuple:
-    """Per-frame residuals of a raw track about a corrected one.
+    """
+    Per-frame residuals of a raw track about a corrected one.
 
     :returns: (rotation angle [rad] (N,), position distance [m] (N,), chi-square (N,)) where the
         chi-square is ``|log(R_hat R^T)|^2 / sigma_rotation^2 + |p_hat - p|^2 / sigma_position^2``.

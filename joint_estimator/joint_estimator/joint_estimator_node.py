@@ -1,4 +1,5 @@
-"""``joint_estimator_node``: joint between two links estimated from their pose tracks.
+"""
+``joint_estimator_node``: joint between two links estimated from their pose tracks.
 
 Input (parameter ``input_mode``, read-only):
   - ``two_links`` (default): ``link_a_pose`` and ``link_b_pose`` (geometry_msgs/PoseStamped in a
@@ -37,31 +38,30 @@ from collections import deque
 from typing import List, Optional
 
 from geometry_msgs.msg import PoseStamped
+from joint_estimator.ambiguity import AXIS_INDEX, relative_candidates, two_link_candidates
+from joint_estimator.common import JointType, relative_track
+from joint_estimator.selection import estimate_joint, JointEstimation
 from nav_msgs.msg import Path
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data, QoSProfile
 from std_msgs.msg import ColorRGBA, Header
 from stereo_manip_msgs.msg import JointEstimate
 from stereo_manip_msgs.srv import EstimateJoint
-from visualization_msgs.msg import Marker
-
-from joint_estimator.ambiguity import AXIS_INDEX, relative_candidates, two_link_candidates
-from joint_estimator.common import JointType, relative_track
-from joint_estimator.selection import estimate_joint, JointEstimation
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     numpy_to_point, numpy_to_vector3, path_to_matrices, pose_stamped_to_matrix
 from stereo_manip_tools.diagnostics import NodeDiagnostics
-from stereo_manip_tools.sync import StampSynchronizer
-from stereo_manip_tools.tf import object_frame, PoseTfPublisher
 from stereo_manip_tools.parameters import (
     float_descriptor as _float, int_descriptor as _int, reject_nonfinite_parameters,
     string_descriptor as _string)
-from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
+    spin_until_shutdown
+from stereo_manip_tools.sync import StampSynchronizer
+from stereo_manip_tools.tf import object_frame, PoseTfPublisher
+from visualization_msgs.msg import Marker
 
 __all__ = ['JointEstimatorNode', 'estimation_to_msg', 'estimation_to_marker', 'JOINT_TYPE_NAMES',
            'main']
@@ -71,8 +71,12 @@ JOINT_TYPE_NAMES = {'auto': 255, **{t.name.lower(): int(t) for t in JointType}}
 
 
 def joint_position(estimation: JointEstimation) -> float:
-    """Joint coordinate of the newest pose: angle [rad] (revolute, cylindrical, planar),
-    displacement [m] (prismatic), rotation angle [rad] (spherical), 0 (fixed)."""
+    """
+    Joint coordinate of the newest pose.
+
+    Angle [rad] (revolute, cylindrical, planar), displacement [m] (prismatic), rotation angle [rad]
+    (spherical), 0 (fixed).
+    """
     best = estimation.best
     if best.coordinates.shape[1] == 0:
         return 0.0
@@ -83,8 +87,12 @@ def joint_position(estimation: JointEstimation) -> float:
 
 def estimation_to_msg(estimation: JointEstimation, header: Header, link_a_frame: str,
                       link_b_frame: str) -> JointEstimate:
-    """JointEstimate message of an estimation (RMS residuals over the inlier frames; noise,
-    coverage, uncertainty and warnings of the selected fit)."""
+    """
+    Build the JointEstimate message of an estimation.
+
+    JointEstimate message of an estimation (RMS residuals over the inlier frames; noise,
+    coverage, uncertainty and warnings of the selected fit).
+    """
     b = estimation.best
     msg = JointEstimate(header=header, joint_type=int(b.joint_type), link_a_frame=link_a_frame,
                         link_b_frame=link_b_frame)
@@ -117,7 +125,7 @@ def estimation_to_msg(estimation: JointEstimation, header: Header, link_a_frame:
 
 
 def estimation_to_marker(estimation: JointEstimation, header: Header) -> Marker:
-    """RViz marker of the estimated joint in link B's frame (see the module docstring)."""
+    """Make the RViz marker of the estimated joint in link B's frame (see the module docstring)."""
     b = estimation.best
     m = Marker(header=header, ns='joint_estimator', id=0, action=Marker.ADD,
                color=ColorRGBA(r=1.0, g=0.0, b=0.0, a=1.0))
@@ -153,7 +161,7 @@ class JointEstimatorNode(Node):
         self.declare_parameter('input_mode', 'two_links', _string(
             "'two_links' (link_a_pose + link_b_pose in a common frame) or 'relative' "
             '(relative_pose: link A in link B)', read_only=True))
-        self.declare_parameter('link_a_frame', 'link_a', _string('name of link A\'s frame'))
+        self.declare_parameter('link_a_frame', 'link_a', _string("name of link A's frame"))
         self.declare_parameter('link_b_frame', '', _string(
             "name of link B's frame (frame_id of the outputs); empty: relative_pose's "
             "frame_id (relative mode) or 'link_b'"))
@@ -201,7 +209,7 @@ class JointEstimatorNode(Node):
         self.declare_parameter('refine', True, ParameterDescriptor(
             type=ParameterType.PARAMETER_BOOL,
             description='maximum-likelihood refinement of revolute/cylindrical axes; false: '
-                        'the chapter\'s Eqs. 17-18 only'))
+                        "the chapter's Eqs. 17-18 only"))
         self.declare_parameter('correction', 'ml', _string(
             "corrected track: 'ml' (weighted projection on the joint) or 'chapter' "
             '(revolute: minimal-rotation correction of Section 4)'))
@@ -256,7 +264,7 @@ class JointEstimatorNode(Node):
     # --- parameters -----------------------------------------------------------------------
 
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
-        """Checks beyond the descriptors' ranges (choices of the string parameters)."""
+        """Check what the descriptors' ranges do not (choices of the string parameters)."""
         for p in params:
             if p.name == 'input_mode' and p.value not in ('two_links', 'relative'):
                 return SetParametersResult(
@@ -279,8 +287,12 @@ class JointEstimatorNode(Node):
     def _estimate(self, poses: np.ndarray, stamps: np.ndarray,
                   joint_type: Optional[int] = None,
                   link_poses: Optional[tuple] = None) -> JointEstimation:
-        """Estimate with the node's parameters; ``link_poses = (A, B)`` (camera frame) in
-        two_links mode, for the flip candidates of both links."""
+        """
+        Estimate with the node's parameters.
+
+        ``link_poses = (A, B)`` (camera frame) in two_links mode, for the flip candidates of both
+        links.
+        """
         g = self.get_parameter
         if joint_type is None:
             joint_type = JOINT_TYPE_NAMES[g('joint_type').value]
@@ -345,8 +357,11 @@ class JointEstimatorNode(Node):
         return int(round(self.get_parameter('stamp_reset_threshold').value * 1e9))
 
     def _reset(self, what: str, stamp: int, newest: int) -> None:
-        """A source restart (stamps jumped back): clear the window and the pairing queues; one
-        log line per event."""
+        """
+        Handle a source restart (stamps jumped back).
+
+        Clear the window and the pairing queues; one log line per event.
+        """
         self.counts['resets'] += 1
         self.get_logger().warning(
             f'{what}: stamp {stamp} ns is {(newest - stamp) / 1e9:.3f} s behind the newest '
@@ -462,10 +477,4 @@ def main(args=None) -> None:
     """Run the node."""
     rclpy.init(args=args)
     node = create_node_or_exit(JointEstimatorNode, 'joint_estimator_node')
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)

@@ -1,4 +1,5 @@
-"""Fixed, prismatic, spherical, cylindrical and planar joints (Takamatsu 2004; Sturm et al.).
+"""
+Fixed, prismatic, spherical, cylindrical and planar joints (Takamatsu 2004; Sturm et al.).
 
 Every model is fitted from the relative track ``^B Theta_A(t)`` (N, 3, 3), ``^B t_A(t)`` (N, 3)
 [m] and projects a track onto itself with :meth:`project`, which returns the corrected track
@@ -18,14 +19,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, Dict, Tuple
 
-import numpy as np
-
 from joint_estimator.common import (
     DegenerateMotionError, JointType, minimal_rotations_onto, perpendicular_basis,
     rotation_vectors, rotations_about_axis)
 from joint_estimator.revolute import (
-    AxisLineModel, correct_orientations, DEFAULT_MIN_ROTATION_RANGE, fit_axis_directions,
+    axis_directions_or_raise, AxisLineModel, DEFAULT_MIN_ROTATION_RANGE, fit_axis_directions,
     fit_revolute, ml_angles, rotation_range_from_singular_values, solve_axis_points)
+import numpy as np
 
 __all__ = [
     'DEFAULT_MIN_TRANSLATION_RANGE',
@@ -74,7 +74,7 @@ class FixedModel:
 
 
 def fit_fixed(R: np.ndarray, p: np.ndarray, **_) -> FixedModel:
-    """Fixed joint: chordal mean orientation and mean position."""
+    """Fit a fixed joint: chordal mean orientation and mean position."""
     return FixedModel(_mean_rotation(R), p.mean(axis=0))
 
 
@@ -113,8 +113,11 @@ def _principal_axes(p: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
 def fit_prismatic(R: np.ndarray, p: np.ndarray,
                   min_translation_range: float = DEFAULT_MIN_TRANSLATION_RANGE,
                   **_) -> PrismaticModel:
-    """Prismatic joint: mean orientation; line through the mean position along the principal
-    direction of the positions.
+    """
+    Prismatic joint.
+
+    Mean orientation; line through the mean position along the principal direction of the
+    positions.
 
     :raises DegenerateMotionError: equivalent translation range ``sqrt(12 (l1 - l2))`` (l: the
         position covariance eigenvalues) below ``min_translation_range`` [m].
@@ -140,8 +143,12 @@ class SphericalModel:
     n_params: int = 6
 
     def project(self, R, p, sigma_position, sigma_rotation):
-        """Weighted Procrustes per frame: maximise ``Tr(hat R B)`` with
-        ``B = R^T / s_r^2 - 2 ^A c (p - ^B c)^T / s_p^2``; positions from the centre."""
+        """
+        Weighted Procrustes per frame.
+
+        Maximise ``Tr(hat R B)`` with ``B = R^T / s_r^2 - 2 ^A c (p - ^B c)^T / s_p^2``; positions
+        from the centre.
+        """
         d = p - self.point_in_b
         B = (np.transpose(R, (0, 2, 1)) / sigma_rotation ** 2
              - 2.0 * np.einsum('i,nj->nij', self.point_in_a, d) / sigma_position ** 2)
@@ -156,9 +163,13 @@ class SphericalModel:
 
 
 def fit_spherical(R: np.ndarray, p: np.ndarray, **_) -> SphericalModel:
-    """Ball joint: Eq. (18)'s least squares with the raw orientations,
-    ``[-Theta(t) I] (^A c; ^B c) = t(t)``, minimum norm by SVD. If the rotations span a single
-    axis (or none) the centre is not unique: the model is flagged degenerate."""
+    """
+    Ball joint.
+
+    Eq. (18)'s least squares with the raw orientations, ``[-Theta(t) I] (^A c; ^B c) = t(t)``,
+    minimum norm by SVD. If the rotations span a single axis (or none) the centre is not unique:
+    the model is flagged degenerate.
+    """
     ca, cb, rank, _ = solve_axis_points(R, p, rcond=1e-6)
     status = '' if rank == 6 else (f'spherical: centre not unique (rank {rank} of 6), '
                                    'minimum-norm centre returned')
@@ -167,8 +178,11 @@ def fit_spherical(R: np.ndarray, p: np.ndarray, **_) -> SphericalModel:
 
 @dataclass
 class CylindricalModel(AxisLineModel):
-    """Rotation about and translation along one line: ``^B l = Theta ^A l`` and
-    ``^B c + s ^B l = Theta ^A c + t`` for some s per frame."""
+    """
+    Rotation about and translation along one line.
+
+    ``^B l = Theta ^A l`` and ``^B c + s ^B l = Theta ^A c + t`` for some s per frame.
+    """
 
     joint_type: JointType = JointType.CYLINDRICAL
     n_params: int = 8
@@ -185,20 +199,16 @@ class CylindricalModel(AxisLineModel):
 def fit_cylindrical(R: np.ndarray, p: np.ndarray,
                     min_rotation_range: float = DEFAULT_MIN_ROTATION_RANGE,
                     **_) -> CylindricalModel:
-    """Cylindrical joint: directions by Eq. (17) (closed form), orientations corrected as for
-    the revolute joint, then the line from ``P (^B c - hat Theta ^A c - t) = 0``
-    (``P = I - ^B l ^B l^T``) by SVD minimum norm (rank 4 of 6).
+    """
+    Cylindrical joint.
+
+    Directions by Eq. (17) (closed form), orientations corrected as for the revolute joint, then
+    the line from ``P (^B c - hat Theta ^A c - t) = 0`` (``P = I - ^B l ^B l^T``) by SVD minimum
+    norm (rank 4 of 6).
 
     :raises DegenerateMotionError: rotation range below ``min_rotation_range`` [rad].
     """
-    a, b, S = fit_axis_directions(R)
-    rng = rotation_range_from_singular_values(S)
-    if rng < min_rotation_range or S[0] - S[1] <= 1e-12 * S[0]:
-        raise DegenerateMotionError(
-            f'rotation range {np.rad2deg(rng):.2f} deg is below '
-            f'{np.rad2deg(min_rotation_range):.2f}'
-            ' deg: the motion does not define a cylindrical axis')
-    R_hat = correct_orientations(R, a, b)
+    a, b, R_hat, rng = axis_directions_or_raise(R, min_rotation_range, 'cylindrical')
     P = np.eye(3) - np.outer(b, b)
     PR = P @ R_hat                                   # (N, 3, 3)
     AtA = np.zeros((6, 6))
@@ -217,8 +227,12 @@ def fit_cylindrical(R: np.ndarray, p: np.ndarray,
 
 @dataclass
 class PlanarModel:
-    """Planar joint: rotation about the plane normal (``^B n = Theta ^A n``) and translation in
-    the plane ``^B n . t = offset``."""
+    """
+    Planar joint.
+
+    Rotation about the plane normal (``^B n = Theta ^A n``) and translation in the plane ``^B n . t
+    = offset``.
+    """
 
     axis_in_a: np.ndarray
     axis_in_b: np.ndarray
@@ -254,9 +268,13 @@ class PlanarModel:
 
 def fit_planar(R: np.ndarray, p: np.ndarray,
                min_rotation_range: float = DEFAULT_MIN_ROTATION_RANGE, **_) -> PlanarModel:
-    """Planar joint: the normal from Eq. (17) when the rotation range defines it, otherwise the
-    least-variance direction of the positions (flagged degenerate if the positions do not span
-    a plane either); offset = mean of ``^B n . t``."""
+    """
+    Planar joint.
+
+    The normal from Eq. (17) when the rotation range defines it, otherwise the least-variance
+    direction of the positions (flagged degenerate if the positions do not span a plane either);
+    offset = mean of ``^B n . t``.
+    """
     a, b, S = fit_axis_directions(R)
     rng = rotation_range_from_singular_values(S)
     status, degenerate = '', False
@@ -295,7 +313,8 @@ MIN_SAMPLES: Dict[JointType, int] = {
 def fit_model(joint_type: JointType, R: np.ndarray, p: np.ndarray,
               min_rotation_range: float = DEFAULT_MIN_ROTATION_RANGE,
               min_translation_range: float = DEFAULT_MIN_TRANSLATION_RANGE):
-    """Fit one joint type to orientations (N, 3, 3) and positions (N, 3) [m] (all frames).
+    """
+    Fit one joint type to orientations (N, 3, 3) and positions (N, 3) [m] (all frames).
 
     :raises ValueError: fewer frames than the type needs; :raises DegenerateMotionError.
     """

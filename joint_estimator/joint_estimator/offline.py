@@ -1,4 +1,5 @@
-"""``estimate_joint``: offline joint estimation from a CSV file or a rosbag2 bag.
+"""
+``estimate_joint``: offline joint estimation from a CSV file or a rosbag2 bag.
 
 Input, one of:
   - ``--csv FILE`` with a header row: ``stamp`` [s] (optional) and either the relative pose
@@ -27,11 +28,10 @@ from pathlib import Path
 import sys
 from typing import Optional, Sequence
 
-import numpy as np
-
 from joint_estimator.ambiguity import AXIS_INDEX, two_link_candidates
 from joint_estimator.common import JointType, relative_track
 from joint_estimator.selection import estimate_joint, JointEstimation
+import numpy as np
 from stereo_manip_tools.transforms import matrix_from_quaternion, quaternion_from_matrix
 
 __all__ = ['read_csv_track', 'read_bag_track', 'estimation_to_dict', 'plot_estimation', 'main']
@@ -50,8 +50,10 @@ def _poses_from_columns(cols: np.ndarray, where: str) -> np.ndarray:
 
 
 def read_csv_track(path: Path, with_links: bool = False) -> tuple:
-    """Relative track ``^B T_A`` (N, 4, 4) and stamps [ns] (or None) from a CSV file; with
-    ``with_links`` also the two links' tracks ``(A, B)`` in the common frame (None for a
+    """
+    Relative track ``^B T_A`` (N, 4, 4) and stamps [ns] (or None) from a CSV file.
+
+    With ``with_links`` also the two links' tracks ``(A, B)`` in the common frame (None for a
     relative CSV).
 
     :raises ValueError: unreadable file, missing columns, non-numeric or non-finite values.
@@ -90,7 +92,10 @@ def read_csv_track(path: Path, with_links: bool = False) -> tuple:
 def read_bag_track(path: Path, topic_relative: Optional[str], topic_a: Optional[str],
                    topic_b: Optional[str], sync_tolerance: float = 0.005,
                    with_links: bool = False) -> tuple:
-    """Relative track and stamps [ns] from PoseStamped topics of a rosbag2 bag (with
+    """
+    Read a relative track and its stamps [ns] from a rosbag2 bag.
+
+    Relative track and stamps [ns] from PoseStamped topics of a rosbag2 bag (with
     ``with_links``, also the paired links' tracks ``(A, B)``, None for a relative topic).
 
     :raises ValueError: bad bag, missing topic, wrong type, unusable pose.
@@ -137,8 +142,11 @@ def _finite_or_none(v: float):
 
 
 def estimation_to_dict(est: JointEstimation) -> dict:
-    """JSON-ready summary of an estimation (metres, radians; NaN as null). ``coordinates`` are
-    the joint coordinates per frame, angles unwrapped in frame order."""
+    """
+    JSON-ready summary of an estimation (metres, radians; NaN as null).
+
+    ``coordinates`` are the joint coordinates per frame, angles unwrapped in frame order.
+    """
     b = est.best
     return {
         'joint_type': b.joint_type.name.lower(),
@@ -169,9 +177,13 @@ def estimation_to_dict(est: JointEstimation) -> dict:
 
 
 def plot_estimation(raw: np.ndarray, est: JointEstimation, path: Path) -> None:
-    """Figure like Fig. 13: track of A's origin in B (raw dots, corrected line, rejected frames
-    as crosses) with the estimated axis in red, side and front views, plus the joint coordinate
-    and residuals per frame. Written with matplotlib's Agg backend."""
+    """
+    Figure like Fig. 13.
+
+    Track of A's origin in B (raw dots, corrected line, rejected frames as crosses) with the
+    estimated axis in red, side and front views, plus the joint coordinate and residuals per frame.
+    Written with matplotlib's Agg backend.
+    """
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -238,9 +250,9 @@ def plot_estimation(raw: np.ndarray, est: JointEstimation, path: Path) -> None:
 
 
 def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog='estimate_joint', description=__doc__.split('\n')[0],
+    ap = argparse.ArgumentParser(prog='estimate_joint', description=__doc__.strip().split('\n')[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog=__doc__.split('\n', 2)[2])
+                                 epilog=__doc__.strip().split('\n', 2)[2])
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument('--csv', type=Path, help='CSV track (see below)')
     src.add_argument('--bag', type=Path, help='rosbag2 bag directory')

@@ -1,4 +1,7 @@
-"""Maximum-likelihood refinement of axis joints (revolute, cylindrical) over orientation *and*
+"""
+Maximum-likelihood refinement of axis joints (revolute, cylindrical).
+
+Maximum-likelihood refinement of axis joints (revolute, cylindrical) over orientation *and*
 position residuals.
 
 Eq. (17) determines the axis directions from the orientations alone. When the positions are
@@ -16,11 +19,10 @@ squares of decoupled orientation and position terms and are returned unchanged.
 
 from __future__ import annotations
 
-import numpy as np
-
 from joint_estimator.common import minimal_rotations_onto, perpendicular_basis
 from joint_estimator.models import CylindricalModel
 from joint_estimator.revolute import AxisLineModel, project_track, RevoluteModel
+import numpy as np
 
 __all__ = ['is_refinable', 'refine_model', 'levenberg_marquardt', 'axis_uncertainty']
 
@@ -30,13 +32,16 @@ def _unit(v):
 
 
 def is_refinable(model) -> bool:
-    """True for the models :func:`refine_model` changes (revolute, cylindrical)."""
+    """Tell whether :func:`refine_model` changes the model (revolute, cylindrical)."""
     return isinstance(model, AxisLineModel)
 
 
 def levenberg_marquardt(fun, x0: np.ndarray, max_iterations: int = 8, step: float = 1e-6,
                         rtol: float = 1e-6):
-    """Minimise ``|fun(x)|^2`` from ``x0`` by Levenberg-Marquardt with a forward-difference
+    """
+    Minimise ``|fun(x)|^2`` from ``x0`` by Levenberg-Marquardt.
+
+    Minimise ``|fun(x)|^2`` from ``x0`` by Levenberg-Marquardt with a forward-difference
     Jacobian, at most ``max_iterations`` accepted steps (the start is close to the optimum, so
     a few Gauss-Newton steps suffice). Returns the solution, or None if no step improved.
     """
@@ -69,9 +74,12 @@ def levenberg_marquardt(fun, x0: np.ndarray, max_iterations: int = 8, step: floa
 
 def _parametrisation(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
                      sigma_rotation: float, ray_ratio: float = 1.0) -> tuple:
-    """``(build, residuals, n_params)`` of an axis model about its current value: ``build(x)``
-    is the model at the local parameters ``x`` (zeros: ``model``), ``residuals(x)`` the
-    noise-normalised residual vector (6 per frame) of the frames ``R``, ``p``."""
+    """
+    ``(build, residuals, n_params)`` of an axis model about its current value.
+
+    ``build(x)`` is the model at the local parameters ``x`` (zeros: ``model``), ``residuals(x)``
+    the noise-normalised residual vector (6 per frame) of the frames ``R``, ``p``.
+    """
     cyl = isinstance(model, CylindricalModel)
     a0, b0 = model.axis_in_a, model.axis_in_b
     ga, gb = perpendicular_basis(a0), perpendicular_basis(b0)
@@ -107,7 +115,8 @@ def _parametrisation(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
 
 def refine_model(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
                  sigma_rotation: float, max_iterations: int = 8, ray_ratio: float = 1.0):
-    """Refined copy of a revolute or cylindrical ``model`` (others are returned as they are).
+    """
+    Refined copy of a revolute or cylindrical ``model`` (others are returned as they are).
 
     Parameters: ``^A l`` and ``^B l`` (2 each, tangent steps), ``^B c`` across the axis (2) and
     ``^A c`` (3 for revolute, 2 across the axis for cylindrical): the gauge (sliding the points
@@ -143,7 +152,8 @@ def refine_model(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
 def axis_uncertainty(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
                      sigma_rotation: float, anchor_in_b: np.ndarray, step: float = 1e-6,
                      ray_ratio: float = 1.0) -> dict:
-    """First-order (Gauss-Newton) uncertainty of an axis joint from the frames it was fitted to.
+    """
+    First-order (Gauss-Newton) uncertainty of an axis joint from the frames it was fitted to.
 
     The covariance of the local parameters is ``(J^T J)^-1`` with ``J`` the Jacobian of the
     noise-normalised residuals (forward differences), i.e. it assumes the noise scales are right

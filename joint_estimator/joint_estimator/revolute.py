@@ -1,4 +1,5 @@
-"""Revolute joint from the relative track of link A in link B, exactly as Section 4 derives it.
+"""
+Revolute joint from the relative track of link A in link B, exactly as Section 4 derives it.
 
 Input: ``^B Theta_A(t)`` (N, 3, 3) and ``^B t_A(t)`` (N, 3) [m]. The joint parameters are the axis
 direction in both links, ``^A l`` and ``^B l`` (unit), and a point on the axis in both links,
@@ -42,13 +43,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-from scipy.optimize import minimize
-
 from joint_estimator.common import (
-    _skew, compose_track, DegenerateMotionError, frame_residuals, JointFit, JointType,
+    compose_track, DegenerateMotionError, frame_residuals, JointFit, JointType,
     minimal_rotations_onto, rotations_about_axis, signed_angles_about_axis, split_track,
     validate_track)
+import numpy as np
+from scipy.optimize import minimize
+from stereo_manip_tools.transforms import skew
 
 __all__ = [
     'eq17_objective',
@@ -71,7 +72,8 @@ DEFAULT_MIN_ROTATION_RANGE = np.deg2rad(10.0)
 
 
 def eq17_objective(R: np.ndarray, axis_in_a: np.ndarray, axis_in_b: np.ndarray) -> float:
-    """Eq. (17): ``sum_t (1 - Tr(^B Theta_A(t) ^A l ^B l^T))`` = ``sum_t (1 - cos theta(t))``.
+    """
+    Eq. (17): ``sum_t (1 - Tr(^B Theta_A(t) ^A l ^B l^T))`` = ``sum_t (1 - cos theta(t))``.
 
     :param R: (N, 3, 3) orientations ``^B Theta_A(t)``.
     :param axis_in_a: ``^A l`` (3,), unit.
@@ -88,7 +90,8 @@ def _canonical_sign(a: np.ndarray, b: np.ndarray) -> tuple:
 
 
 def fit_axis_directions(R: np.ndarray) -> tuple:
-    """Closed-form solution of Eq. (17): top singular vectors of ``M = sum_t ^B Theta_A(t)``.
+    """
+    Closed-form solution of Eq. (17): top singular vectors of ``M = sum_t ^B Theta_A(t)``.
 
     ``sum_t Tr(Theta_t a b^T) = b^T M a`` is maximised over unit a, b by ``b = u_1``,
     ``a = v_1`` (``M = U S V^T``), which minimises Eq. (17). The pair is defined up to a common
@@ -105,7 +108,8 @@ def fit_axis_directions(R: np.ndarray) -> tuple:
 
 def fit_axis_directions_iterative(R: np.ndarray, initial: Optional[tuple] = None,
                                   tol: float = 1e-12) -> tuple:
-    """Baseline: Eq. (17) minimised iteratively (BFGS over two pairs of spherical angles).
+    """
+    Baseline: Eq. (17) minimised iteratively (BFGS over two pairs of spherical angles).
 
     This is how the original C++ estimator solves Eq. (17); the objective is evaluated as
     written, summing over the frames at every evaluation. Start: the axis of the relative
@@ -138,7 +142,8 @@ def fit_axis_directions_iterative(R: np.ndarray, initial: Optional[tuple] = None
 
 
 def rotation_range_from_singular_values(S: np.ndarray) -> float:
-    """Equivalent uniform rotation range [rad] about the axis from the singular values of M.
+    """
+    Equivalent uniform rotation range [rad] about the axis from the singular values of M.
 
     For a pure rotation about the axis by angles q(t), ``s_1 = N`` and
     ``s_2 = s_3 = |sum_t exp(i q(t))|``; for q uniform over a range r,
@@ -148,16 +153,39 @@ def rotation_range_from_singular_values(S: np.ndarray) -> float:
     return float(np.sqrt(24.0 * max(0.0, 1.0 - S[1] / S[0])))
 
 
+def axis_directions_or_raise(R: np.ndarray, min_rotation_range: float, kind: str) -> tuple:
+    """
+    Fit the axis directions by Eq. (17) and correct the orientations about them.
+
+    :returns: ``(^A l, ^B l, corrected orientations (N, 3, 3), rotation range [rad])``.
+    :raises DegenerateMotionError: rotation range below ``min_rotation_range`` [rad] (the
+        motion does not define a ``kind`` axis).
+    """
+    a, b, S = fit_axis_directions(R)
+    rng = rotation_range_from_singular_values(S)
+    if rng < min_rotation_range or S[0] - S[1] <= 1e-12 * S[0]:
+        raise DegenerateMotionError(
+            f'rotation range {np.rad2deg(rng):.2f} deg is below '
+            f'{np.rad2deg(min_rotation_range):.2f}'
+            f' deg: the motion does not define a {kind} axis')
+    return a, b, correct_orientations(R, a, b), rng
+
+
 def correct_orientations(R: np.ndarray, axis_in_a: np.ndarray,
                          axis_in_b: np.ndarray) -> np.ndarray:
-    """Corrected orientations: the minimal rotation taking ``Theta(t) ^A l`` onto ``^B l`` applied
-    to ``Theta(t)``; the result satisfies Eq. (10) exactly. (N, 3, 3) -> (N, 3, 3)."""
+    """
+    Corrected orientations.
+
+    The minimal rotation taking ``Theta(t) ^A l`` onto ``^B l`` applied to ``Theta(t)``; the result
+    satisfies Eq. (10) exactly. (N, 3, 3) -> (N, 3, 3).
+    """
     D = minimal_rotations_onto(R @ axis_in_a, axis_in_b)
     return D @ R
 
 
 def solve_axis_points(R_hat: np.ndarray, p: np.ndarray, rcond: float = 1e-9) -> tuple:
-    """Eq. (18) by SVD: the minimum-norm ``(^A c, ^B c)`` of the rank-deficient normal equations.
+    """
+    Eq. (18) by SVD: the minimum-norm ``(^A c, ^B c)`` of the rank-deficient normal equations.
 
     :param R_hat: (N, 3, 3) corrected orientations.
     :param p: (N, 3) positions ``^B t_A(t)`` [m].
@@ -180,7 +208,8 @@ def solve_axis_points(R_hat: np.ndarray, p: np.ndarray, rcond: float = 1e-9) -> 
 
 @dataclass
 class AxisLineModel:
-    """Parameters shared by the joints that rotate about one line (revolute, cylindrical).
+    """
+    Parameters shared by the joints that rotate about one line (revolute, cylindrical).
 
     The line has direction ``axis_in_a`` / ``axis_in_b`` and passes through ``point_in_a`` /
     ``point_in_b`` in the two links' frames; ``reference`` is ``R_0``.
@@ -207,7 +236,8 @@ class RevoluteModel(AxisLineModel):
         return compose_track(R, self.point_in_b - R @ self.point_in_a)
 
     def project_chapter(self, R: np.ndarray, p: np.ndarray) -> tuple:
-        """The chapter's correction: minimal-rotation orientations, positions by Eq. (11).
+        """
+        Apply the chapter's correction: minimal-rotation orientations, positions by Eq. (11).
 
         :returns: ``(R_hat (N, 3, 3), p_hat (N, 3), angles (N, 1))``.
         """
@@ -217,7 +247,8 @@ class RevoluteModel(AxisLineModel):
 
     def project(self, R: np.ndarray, p: np.ndarray, sigma_position: float,
                 sigma_rotation: float) -> tuple:
-        """Maximum-likelihood joint angle per frame (chordal orientation + position residual).
+        """
+        Maximum-likelihood joint angle per frame (chordal orientation + position residual).
 
         :returns: ``(R_hat (N, 3, 3), p_hat (N, 3), angles (N, 1))``.
         """
@@ -229,7 +260,10 @@ class RevoluteModel(AxisLineModel):
 
 def project_track(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
                   sigma_rotation: float, ray_ratio: float = 1.0, exact: bool = True) -> tuple:
-    """Project a track onto any joint ``model`` with position noise that is ``ray_ratio`` times
+    """
+    Project a track onto any joint ``model`` with anisotropic position noise.
+
+    Project a track onto any joint ``model`` with position noise that is ``ray_ratio`` times
     larger along the line of sight from B's origin (a camera's depth) than across it
     (``sigma_position``).
 
@@ -256,13 +290,17 @@ def project_track(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
 def anisotropic_angles(R: np.ndarray, p: np.ndarray, model, q0: np.ndarray,
                        sigma_position: float, sigma_rotation: float, ray_ratio: float,
                        iterations: int = 6) -> np.ndarray:
-    """Revolute joint angles (N,) [rad] minimising, per frame,
+    """
+    Estimate revolute joint angles under anisotropic position noise.
+
+    Revolute joint angles (N,) [rad] minimising, per frame,
     ``(3 - Tr(R(q) R^T)) / s_r^2 + |W (hat p(q) - p)|^2 / s_p^2`` with
     ``W = I + (1 / ray_ratio - 1) v v^T`` (``v``: unit line of sight of ``p``). With
     ``c = cos q``, ``s = sin q`` the cost is ``-A c - B s + P c^2 + Q s^2 + 2 S c s`` + const;
-    Newton steps from ``q0``, a step kept only where it lowers the cost."""
+    Newton steps from ``q0``, a step kept only where it lowers the cost.
+    """
     ax = model.axis_in_b
-    K = _skew(ax)
+    K = skew(ax)
     M = model.reference[None] @ np.transpose(R, (0, 2, 1))
     a_r = ((np.trace(M, axis1=1, axis2=2) - np.einsum('i,nij,j->n', ax, M, ax))
            / sigma_rotation ** 2)
@@ -310,7 +348,10 @@ def anisotropic_angles(R: np.ndarray, p: np.ndarray, model, q0: np.ndarray,
 def ml_angles(R: np.ndarray, p: np.ndarray, axis_b: np.ndarray, reference: np.ndarray,
               point_a: np.ndarray, point_b: np.ndarray, sigma_position: Optional[float],
               sigma_rotation: float, slide: bool) -> np.ndarray:
-    """Angles q (N,) [rad] minimising, per frame, for ``R(q) = R(^B l, q) R_0``::
+    """
+    Estimate maximum-likelihood revolute joint angles (N,) [rad].
+
+    Angles q (N,) [rad] minimising, per frame, for ``R(q) = R(^B l, q) R_0``::
 
         (3 - Tr(R(q) R^T)) / sigma_rot^2 + |P (p - ^B c + R(q) ^A c)|^2 / sigma_pos^2
 
@@ -319,7 +360,7 @@ def ml_angles(R: np.ndarray, p: np.ndarray, axis_b: np.ndarray, reference: np.nd
     ``const - (a cos q + b sin q)``, so ``q = atan2(b, a)`` is the exact minimiser.
     """
     ax = axis_b
-    K = _skew(ax)
+    K = skew(ax)
     M = reference[None] @ np.transpose(R, (0, 2, 1))
     trM = np.trace(M, axis1=1, axis2=2)
     lMl = np.einsum('i,nij,j->n', ax, M, ax)
@@ -338,20 +379,14 @@ def ml_angles(R: np.ndarray, p: np.ndarray, axis_b: np.ndarray, reference: np.nd
 
 def fit_revolute(R: np.ndarray, p: np.ndarray,
                  min_rotation_range: float = DEFAULT_MIN_ROTATION_RANGE) -> RevoluteModel:
-    """Revolute joint parameters by Eqs. (17) (closed form) and (18) (SVD, minimum norm).
+    """
+    Revolute joint parameters by Eqs. (17) (closed form) and (18) (SVD, minimum norm).
 
     :param R: (N, 3, 3) orientations ``^B Theta_A(t)``; :param p: (N, 3) positions [m].
     :param min_rotation_range: below this equivalent rotation range [rad] the axis is undefined.
     :raises DegenerateMotionError: rotation range below ``min_rotation_range``.
     """
-    a, b, S = fit_axis_directions(R)
-    rng = rotation_range_from_singular_values(S)
-    if rng < min_rotation_range or S[0] - S[1] <= 1e-12 * S[0]:
-        raise DegenerateMotionError(
-            f'rotation range {np.rad2deg(rng):.2f} deg is below '
-            f'{np.rad2deg(min_rotation_range):.2f}'
-            ' deg: the motion does not define a revolute axis')
-    R_hat = correct_orientations(R, a, b)
+    a, b, R_hat, rng = axis_directions_or_raise(R, min_rotation_range, 'revolute')
     ca, cb, _, _ = solve_axis_points(R_hat, p)
     R0 = minimal_rotations_onto(a[None], b)[0]
     return RevoluteModel(a, b, ca, cb, R0, rng)
@@ -361,7 +396,8 @@ def estimate_revolute_joint(poses: np.ndarray, sigma_position: float = 0.005,
                             sigma_rotation: float = np.deg2rad(2.0), correction: str = 'chapter',
                             min_rotation_range: float = DEFAULT_MIN_ROTATION_RANGE,
                             stamps_ns=None) -> JointFit:
-    """Estimate a revolute joint and the corrected track (Section 4, Eqs. 10-18), no outlier test.
+    """
+    Estimate a revolute joint and the corrected track (Section 4, Eqs. 10-18), no outlier test.
 
     :param poses: (N, 4, 4) relative track ``^B T_A(t)`` (N >= 2) [m].
     :param sigma_position: position noise std [m] per axis (scales the residual chi-square).
@@ -381,9 +417,13 @@ def estimate_revolute_joint(poses: np.ndarray, sigma_position: float = 0.005,
 def make_fit(model, R: np.ndarray, p: np.ndarray, sigma_position: float, sigma_rotation: float,
              correction: str = 'ml', inliers: Optional[np.ndarray] = None,
              ray_ratio: float = 1.0) -> JointFit:
-    """Project the track onto ``model`` (:func:`project_track`) and package residuals into a
+    """
+    Project the track onto ``model`` and package the residuals into a JointFit.
+
+    Project the track onto ``model`` (:func:`project_track`) and package residuals into a
     :class:`JointFit` (``chi2`` with the position residual's line-of-sight component divided
-    by ``ray_ratio``)."""
+    by ``ray_ratio``).
+    """
     if correction == 'chapter' and hasattr(model, 'project_chapter'):
         R_hat, p_hat, q = model.project_chapter(R, p)
     elif correction in ('chapter', 'ml'):

@@ -1,4 +1,5 @@
-"""Outlier frames, ambiguous (flipped) poses and the noise scale, estimated together.
+"""
+Outlier frames, ambiguous (flipped) poses and the noise scale, estimated together.
 
 MSAC (the truncated-quadratic member of the RANSAC/MLESAC family, Torr & Zisserman 2000):
 hypotheses are fitted to random minimal frame sets (:data:`~joint_estimator.models.MIN_SAMPLES`)
@@ -33,14 +34,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-from scipy.spatial.transform import Rotation
-from scipy.stats import chi2 as chi2_dist
-
 from joint_estimator.common import DegenerateMotionError, JointType
 from joint_estimator.models import DEFAULT_MIN_TRANSLATION_RANGE, fit_model, MIN_SAMPLES
 from joint_estimator.refine import is_refinable, refine_model
 from joint_estimator.revolute import DEFAULT_MIN_ROTATION_RANGE, project_track
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2 as chi2_dist
 
 __all__ = ['DEFAULT_THRESHOLD', 'MEDIAN_NORM_3D', 'MIN_SIGMA_POSITION', 'MIN_SIGMA_ROTATION',
            'RobustFit', 'frame_chi2', 'candidate_residuals', 'line_of_sight_ratio',
@@ -68,7 +68,8 @@ def _angles_from_chordal(c: np.ndarray) -> np.ndarray:
 def candidate_residuals(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
                         sigma_rotation: float, ray_ratio: float = 1.0,
                         exact: bool = True) -> tuple:
-    """Rotation angle [rad] and position distance [m] of every candidate about ``model``.
+    """
+    Rotation angle [rad] and position distance [m] of every candidate about ``model``.
 
     :param R: (N, K, 3, 3) candidate orientations; :param p: (N, K, 3) candidate positions.
     :param ray_ratio: position noise along the line of sight from B's origin (a camera) over
@@ -92,8 +93,12 @@ def candidate_residuals(model, R: np.ndarray, p: np.ndarray, sigma_position: flo
 
 def frame_chi2(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
                sigma_rotation: float) -> np.ndarray:
-    """Noise-normalised squared residual (N,) of each frame (one pose per frame: R (N, 3, 3),
-    p (N, 3)) about its projection on ``model`` (isotropic noise)."""
+    """
+    Noise-normalised squared residual (N,) of each frame about ``model``.
+
+    Noise-normalised squared residual (N,) of each frame (one pose per frame: R (N, 3, 3),
+    p (N, 3)) about its projection on ``model`` (isotropic noise).
+    """
     rot, pos = candidate_residuals(model, R[:, None], p[:, None], sigma_position,
                                    sigma_rotation)
     return (rot[:, 0] / sigma_rotation) ** 2 + (pos[:, 0] / sigma_position) ** 2
@@ -101,7 +106,10 @@ def frame_chi2(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
 
 def line_of_sight_ratio(p: np.ndarray, max_ratio: float = 100.0,
                         max_correlation: float = -0.4) -> float:
-    """Position noise along the line of sight from B's origin (a camera: depth) over the noise
+    """
+    Measure the position noise along the line of sight over the noise across it.
+
+    Position noise along the line of sight from B's origin (a camera: depth) over the noise
     across it, measured without any model from the second differences of a densely sampled
     track (``d_t = p_{t-1} - 2 p_t + p_{t+1}``, noise-dominated when the motion per frame is
     smooth): ``sqrt((median (d.v)^2 / 0.455) / (median |d_perp|^2 / 2 / 0.693))`` (the medians
@@ -131,10 +139,14 @@ def line_of_sight_ratio(p: np.ndarray, max_ratio: float = 100.0,
 
 
 def median_scales(rot: np.ndarray, pos: np.ndarray, quantile: float = SCALE_QUANTILE) -> tuple:
-    """Robust noise scales ``(sigma_position [m], sigma_rotation [rad])`` from per-frame residual
+    """
+    Robust noise scales ``(sigma_position [m], sigma_rotation [rad])``.
+
+    Robust noise scales ``(sigma_position [m], sigma_rotation [rad])`` from per-frame residual
     norms (each the norm of a 3-d Gaussian vector): their ``quantile`` over the same quantile of
     the norm of a standard 3-d normal vector (the median, 1.538, for 0.5), floored. The default
-    0.3 keeps the estimate when up to 70 % of the frames are outliers."""
+    0.3 keeps the estimate when up to 70 % of the frames are outliers.
+    """
     ref = (_QUANTILE_NORM_3D if quantile == SCALE_QUANTILE
            else float(np.sqrt(chi2_dist.ppf(quantile, 3))))
     return (max(float(np.quantile(pos, quantile)) / ref, MIN_SIGMA_POSITION),
@@ -142,9 +154,12 @@ def median_scales(rot: np.ndarray, pos: np.ndarray, quantile: float = SCALE_QUAN
 
 
 def rms_scales(rot: np.ndarray, pos: np.ndarray, dof: int, n_params: int) -> tuple:
-    """Noise scales ``(sigma_position, sigma_rotation)`` from the residual norms of inlier
-    frames: RMS per axis, corrected for the ``dof`` joint coordinates per frame and the
-    ``n_params`` model parameters fitted (``6 n / (6 n - dof n - n_params)``), floored."""
+    """
+    Noise scales ``(sigma_position, sigma_rotation)`` from the residual norms of inlier frames.
+
+    RMS per axis, corrected for the ``dof`` joint coordinates per frame and the ``n_params`` model
+    parameters fitted (``6 n / (6 n - dof n - n_params)``), floored.
+    """
     n = rot.size
     free = max(6 * n - dof * n - n_params, 1)
     f = 6.0 * n / free
@@ -155,9 +170,11 @@ def rms_scales(rot: np.ndarray, pos: np.ndarray, dof: int, n_params: int) -> tup
 def residual_shrinkage(model, R: np.ndarray, p: np.ndarray, sigma_position: float,
                        sigma_rotation: float, ray_ratio: float = 1.0, replicas: int = 4,
                        seed: int = 0) -> tuple:
-    """How much of the noise the model's projection absorbs, per component, by simulation:
-    noise of the given scales (positions ``ray_ratio`` times noisier along the line of sight)
-    is added to the frames' projections on the model and projected again.
+    """
+    How much of the noise the model's projection absorbs, per component, by simulation.
+
+    Noise of the given scales (positions ``ray_ratio`` times noisier along the line of sight) is
+    added to the frames' projections on the model and projected again.
 
     A joint's coordinates absorb part of the noise (a slide takes a position component, an
     angle takes position or orientation noise depending on which is more precise), so the
@@ -185,7 +202,8 @@ def residual_shrinkage(model, R: np.ndarray, p: np.ndarray, sigma_position: floa
 
 @dataclass
 class RobustFit:
-    """Result of :func:`robust_fit`.
+    """
+    Result of :func:`robust_fit`.
 
     :ivar model: the fitted joint model.
     :ivar inliers: (N,) bool, frames that agree with the model (with their chosen candidate).
@@ -213,7 +231,8 @@ def robust_fit(joint_type: JointType, R: np.ndarray, p: np.ndarray,
                max_iterations: int = 100, min_iterations: Optional[int] = None,
                refine: bool = True, rng: Optional[np.random.Generator] = None,
                max_rounds: int = 8, ray_ratio: float = 1.0) -> RobustFit:
-    """Fit ``joint_type`` robustly, choosing one candidate pose per frame.
+    """
+    Fit ``joint_type`` robustly, choosing one candidate pose per frame.
 
     :param R: (N, 3, 3) orientations or (N, K, 3, 3) candidate orientations (index 0 the
         measured pose); :param p: (N, 3) or (N, K, 3) positions [m].

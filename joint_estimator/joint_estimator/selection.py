@@ -1,4 +1,5 @@
-"""Joint estimation with automatic type selection by BIC (as in Sturm et al. 2011).
+"""
+Joint estimation with automatic type selection by BIC (as in Sturm et al. 2011).
 
 Each candidate type is fitted (robustly by default, :mod:`joint_estimator.robust`: outlier
 frames, flipped marker poses repaired with their ambiguous twin, noise scales estimated from
@@ -27,8 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, Iterable, Optional
 
-import numpy as np
-
 from joint_estimator.ambiguity import relative_candidates
 from joint_estimator.common import (
     DegenerateMotionError, JOINT_DOF, JointFit, JointType, split_track, validate_track)
@@ -40,6 +39,7 @@ from joint_estimator.revolute import DEFAULT_MIN_ROTATION_RANGE, make_fit
 from joint_estimator.robust import (
     _START_SIGMAS, candidate_residuals, DEFAULT_THRESHOLD, line_of_sight_ratio, rms_scales,
     robust_fit)
+import numpy as np
 
 __all__ = ['JointEstimation', 'bic_score', 'outlier_cost', 'estimate_joint', 'qualify_fit',
            'unwrap_angles', 'ALL_TYPES', 'MAX_REJECTED_FRACTION', 'MIN_COVERAGE']
@@ -94,15 +94,20 @@ class JointEstimation:
 
 def outlier_cost(sigma_position: float, sigma_rotation: float,
                  workspace_volume: float = 1.0) -> float:
-    """-2 log-likelihood of an outlier frame: a pose uniform over a ``workspace_volume`` [m^3]
-    region times SO(3) (volume 8 pi^2), against a Gaussian inlier density of the given noise
-    levels, i.e. ``2 ln(V 8 pi^2 / ((2 pi)^3 sigma_pos^3 sigma_rot^3))`` (MLESAC's mixture)."""
+    """
+    -2 log-likelihood of an outlier frame.
+
+    a pose uniform over a ``workspace_volume`` [m^3] region times SO(3) (volume 8 pi^2), against a
+    Gaussian inlier density of the given noise levels, i.e. ``2 ln(V 8 pi^2 / ((2 pi)^3 sigma_pos^3
+    sigma_rot^3))`` (MLESAC's mixture).
+    """
     return float(2.0 * np.log(workspace_volume * 8.0 * np.pi ** 2 / (
         (2.0 * np.pi) ** 3 * sigma_position ** 3 * sigma_rotation ** 3)))
 
 
 def bic_score(fit: JointFit, outlier_cost_value: float) -> float:
-    """BIC of a fit over all its frames (see the module docstring).
+    """
+    BIC of a fit over all its frames (see the module docstring).
 
     :param outlier_cost_value: ``c_out`` relative to an inlier's normalisation, i.e. the
         outlier frame's cost minus ``6 ln(2 pi s_rot s_pos)`` (:func:`outlier_cost` at the
@@ -119,9 +124,13 @@ def bic_score(fit: JointFit, outlier_cost_value: float) -> float:
 
 
 def unwrap_angles(q: np.ndarray, inliers: np.ndarray) -> np.ndarray:
-    """Joint angles (N,) [rad] made continuous in frame order: the inlier frames are unwrapped
-    among themselves (a rejected frame's angle cannot make them jump by 2 pi), every other
-    frame takes the 2 pi branch nearest the inliers' angle interpolated at its index."""
+    """
+    Joint angles (N,) [rad] made continuous in frame order.
+
+    The inlier frames are unwrapped among themselves (a rejected frame's angle cannot make them
+    jump by 2 pi), every other frame takes the 2 pi branch nearest the inliers' angle interpolated
+    at its index.
+    """
     q = np.asarray(q, dtype=float)
     idx = np.flatnonzero(inliers)
     if idx.size == 0:
@@ -136,10 +145,12 @@ def unwrap_angles(q: np.ndarray, inliers: np.ndarray) -> np.ndarray:
 
 
 def qualify_fit(fit: JointFit, R: np.ndarray, p: np.ndarray, uncertainty: bool = True) -> None:
-    """Add the honest part of a fit in place: unwrapped angle coordinates, the inliers' span of
-    the motion (``coordinate_range``, ``motion_range``, ``coverage``), the axis uncertainty
-    (revolute, cylindrical; :func:`joint_estimator.refine.axis_uncertainty` on the inlier
-    frames) and ``warnings``.
+    """
+    Add the honest part of a fit in place.
+
+    Unwrapped angle coordinates, the inliers' span of the motion (``coordinate_range``,
+    ``motion_range``, ``coverage``), the axis uncertainty (revolute, cylindrical;
+    :func:`joint_estimator.refine.axis_uncertainty` on the inlier frames) and ``warnings``.
 
     :param R: (N, 3, 3), :param p: (N, 3) [m]: the poses the fit was made from (the candidates
         chosen per frame).
@@ -194,7 +205,8 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
                    pose_candidates: Optional[np.ndarray] = None,
                    camera_noise: bool = True, marker_weights: bool = True,
                    marker_side: Optional[float] = None) -> JointEstimation:
-    """Estimate the joint between two links from the relative track of A in B.
+    """
+    Estimate the joint between two links from the relative track of A in B.
 
     :param poses: (N, 4, 4) relative poses ``^B T_A(t)`` [m].
     :param joint_type: a :class:`JointType` to fit only that type, or None (or 255) to select

@@ -1,4 +1,5 @@
-"""Synthetic joint motions with ground truth, for tests and benchmarks (pure numpy).
+"""
+Synthetic joint motions with ground truth, for tests and benchmarks (pure numpy).
 
 Relative tracks ``^B T_A(t)`` (N, 4, 4) [m] of random joints: random axis directions, axis points
 and link offsets (A's origin up to ``offset_radius`` from the axis), joint coordinates spread
@@ -11,11 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-from scipy.spatial.transform import Rotation
-
 from joint_estimator.common import compose_track, JointType, perpendicular_basis, \
     rotations_about_axis
+import numpy as np
+from scipy.spatial.transform import Rotation
 
 __all__ = ['SyntheticJoint', 'random_joint_motion', 'add_noise', 'add_outliers']
 
@@ -42,7 +42,8 @@ def random_joint_motion(joint_type: JointType, n: int, rng: np.random.Generator,
                         rotation_range: float = np.deg2rad(90.0),
                         translation_range: float = 0.2,
                         offset_radius: float = 0.2) -> SyntheticJoint:
-    """Random joint of ``joint_type`` and a motion of ``n`` poses.
+    """
+    Random joint of ``joint_type`` and a motion of ``n`` poses.
 
     Revolute/cylindrical/planar angles: sorted uniform over ``rotation_range`` [rad] (the
     first and last at its ends); prismatic/cylindrical displacement and planar in-plane
@@ -104,8 +105,12 @@ def random_joint_motion(joint_type: JointType, n: int, rng: np.random.Generator,
 
 def add_noise(poses: np.ndarray, sigma_position: float, sigma_rotation: float,
               rng: np.random.Generator) -> np.ndarray:
-    """Noisy copy of a track: ``R <- exp([e]x) R``, ``e ~ N(0, sigma_rotation^2 I)`` [rad];
-    ``p <- p + N(0, sigma_position^2 I)`` [m]."""
+    """
+    Noisy copy of a track.
+
+    ``R <- exp([e]x) R``, ``e ~ N(0, sigma_rotation^2 I)`` [rad]; ``p <- p + N(0, sigma_position^2
+    I)`` [m].
+    """
     n = poses.shape[0]
     E = Rotation.from_rotvec(rng.normal(0.0, sigma_rotation, (n, 3))).as_matrix()
     return compose_track(E @ poses[:, :3, :3],
@@ -116,8 +121,11 @@ def add_outliers(poses: np.ndarray, fraction: float, rng: np.random.Generator,
                  min_angle: float = np.deg2rad(20.0), max_angle: float = np.deg2rad(60.0),
                  min_jump: float = 0.05, max_jump: float = 0.2,
                  count: Optional[int] = None) -> tuple:
-    """Replace ``fraction`` of the frames by tracking failures: the pose rotated by a random
-    angle in [min_angle, max_angle] about a random axis and moved by [min_jump, max_jump] m.
+    """
+    Replace ``fraction`` of the frames by tracking failures.
+
+    The pose rotated by a random angle in [min_angle, max_angle] about a random axis and moved by
+    [min_jump, max_jump] m.
 
     :returns: ``(track, outlier mask (N,) bool)``.
     """

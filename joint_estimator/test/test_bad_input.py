@@ -1,12 +1,11 @@
 """Bad input gets a clear message, never a crash or a silent answer."""
 
-import numpy as np
-import pytest
-
 from joint_estimator.common import compose_track, JointType, relative_track, validate_track
 from joint_estimator.revolute import estimate_revolute_joint
 from joint_estimator.selection import estimate_joint
 from joint_estimator.synthetic import random_joint_motion
+import numpy as np
+import pytest
 
 
 @pytest.fixture

@@ -1,15 +1,14 @@
 """Square-marker flips, estimated noise scales and the honest outputs, against ground truth."""
 
 import cv2
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from joint_estimator.ambiguity import marker_twins, relative_candidates, two_link_candidates
 from joint_estimator.common import compose_track, JointType, rotations_about_axis
 from joint_estimator.robust import line_of_sight_ratio
 from joint_estimator.selection import estimate_joint, unwrap_angles
 from joint_estimator.synthetic import add_noise, random_joint_motion
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 
 def _angle_deg(a, b):
@@ -22,7 +21,7 @@ def _line_distance(x, c, u):
 
 
 def _door_in_camera(n, rng, motion_deg=100.0, distance=1.0):
-    """A door seen by a camera (B = camera, optical frame), marker (A) z towards the camera."""
+    """Track a door seen by a camera (B = camera, optical frame), marker (A) z to the camera."""
     axis = np.array([0.0, 1.0, 0.0])
     hinge = np.array([-0.2, 0.0, distance])
     R0 = np.column_stack([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])

@@ -1,13 +1,12 @@
 """Every joint type on hand-built motions: parameters, corrected track and joint coordinates."""
 
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from joint_estimator.common import (
     compose_track, JointType, relative_track, rotations_about_axis, split_track)
 from joint_estimator.selection import estimate_joint
 from joint_estimator.synthetic import add_noise
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
 N = 40
 Z = np.array([0.0, 0.0, 1.0])

@@ -1,6 +1,9 @@
 """joint_estimator_node: in-process (rclpy) and as an installed executable (own process)."""
 
 from geometry_msgs.msg import PoseStamped
+from joint_estimator.common import JointType
+from joint_estimator.joint_estimator_node import JointEstimatorNode
+from joint_estimator.synthetic import add_noise, random_joint_motion
 import numpy as np
 import pytest
 import rclpy
@@ -8,14 +11,10 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Header
 from stereo_manip_msgs.msg import JointEstimate
 from stereo_manip_msgs.srv import EstimateJoint
-from visualization_msgs.msg import Marker
-
-from joint_estimator.common import JointType
-from joint_estimator.joint_estimator_node import JointEstimatorNode
-from joint_estimator.synthetic import add_noise, random_joint_motion
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_to_stamp, \
     path_to_matrices, pose_to_matrix
 from stereo_manip_tools.testing import call_service, spin_until, start_executable
+from visualization_msgs.msg import Marker
 
 SP, SR = 0.001, np.deg2rad(1.0)
 
@@ -33,7 +32,7 @@ def _stamped(T, stamp_ns, frame):
 
 @pytest.fixture
 def estimator(ros_node):
-    """A JointEstimatorNode in the ros_node's context, relative input."""
+    """Provide a JointEstimatorNode in the ros_node's context, relative input."""
     node = JointEstimatorNode(context=ros_node.context, parameter_overrides=[
         Parameter('input_mode', value='relative'), Parameter('min_poses', value=20),
         Parameter('estimate_every', value=10), Parameter('sigma_position', value=SP),
@@ -110,9 +109,12 @@ def test_bad_poses_are_counted_and_the_node_keeps_running(ros_node, estimator):
 
 @pytest.mark.ros
 def test_stamps_jumping_back_reset_the_window_and_estimates_resume(ros_node, estimator):
-    """A source restart / bag loop (#16): the stamps start again from the beginning. The
-    window is cleared once per event (not every later pose rejected) and estimates resume from
-    the new poses only."""
+    """
+    A source restart / bag loop (#16): the stamps start again from the beginning.
+
+    The window is cleared once per event (not every later pose rejected) and estimates resume from
+    the new poses only.
+    """
     g, noisy = _door()
     got = []
     ros_node.create_subscription(JointEstimate, 'joint_estimate', got.append, 10)

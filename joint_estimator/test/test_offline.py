@@ -4,15 +4,14 @@ import csv
 import json
 import subprocess
 
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from joint_estimator.common import JointType
 from joint_estimator.offline import main, read_csv_track
 from joint_estimator.synthetic import add_noise, add_outliers, random_joint_motion
-from stereo_manip_tools.transforms import quaternion_from_matrix
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 from stereo_manip_tools.testing import executable_path
+from stereo_manip_tools.transforms import quaternion_from_matrix
 
 SP, SR = 0.001, np.deg2rad(1.0)
 
@@ -139,9 +138,12 @@ def test_installed_command(hinge, tmp_path):
 
 
 def test_defaults_repair_flips_estimate_noise_and_report_coverage(tmp_path, capsys):
-    """A door marker seen by a camera, 25 % of the poses flipped (IPPE twin), no noise levels
-    given: the JSON reports the repaired frames, the estimated noise, the inliers' coverage,
-    the axis uncertainty and unwrapped coordinates crossing +-180 deg."""
+    """
+    A door marker seen by a camera, 25 % of the poses flipped (IPPE twin), no noise levels given.
+
+    The JSON reports the repaired frames, the estimated noise, the inliers' coverage, the axis
+    uncertainty and unwrapped coordinates crossing +-180 deg.
+    """
     from joint_estimator.ambiguity import marker_twins
     from joint_estimator.common import compose_track, rotations_about_axis
     rng = np.random.default_rng(11)

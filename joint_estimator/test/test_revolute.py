@@ -1,17 +1,16 @@
 """Revolute joint exactly as Section 4 derives it (Eqs. 10-18): ground truth and identities."""
 
 from hypothesis import given, settings, strategies as st
-import numpy as np
-import pytest
-from scipy.spatial.transform import Rotation
-
 from joint_estimator.common import (
     compose_track, DegenerateMotionError, perpendicular_basis, rotations_about_axis, split_track)
+from joint_estimator.common import JointType
 from joint_estimator.revolute import (
     correct_orientations, eq17_objective, estimate_revolute_joint, fit_axis_directions,
     fit_axis_directions_iterative, fit_revolute, ml_angles, solve_axis_points)
 from joint_estimator.synthetic import add_noise, random_joint_motion
-from joint_estimator.common import JointType
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 from stereo_manip_tools.transforms import rotation_about_axis, skew
 
 

@@ -1,11 +1,10 @@
 """Automatic joint type selection (BIC) and outlier-frame rejection (MSAC + refit)."""
 
-import numpy as np
-import pytest
-
 from joint_estimator.common import compose_track, JointType
 from joint_estimator.selection import ALL_TYPES, bic_score, estimate_joint
 from joint_estimator.synthetic import add_noise, add_outliers, random_joint_motion
+import numpy as np
+import pytest
 
 SP, SR = 0.001, np.deg2rad(1.0)
 

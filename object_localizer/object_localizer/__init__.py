@@ -1,3 +1,5 @@
-"""Known 3D models localised in point clouds: descriptors + RANSAC, then ICP with an M-estimator;
-6-DOF pose tracking.
+"""
+Known 3D models localised in point clouds.
+
+Descriptors + RANSAC, then ICP with an M-estimator; 6-DOF pose tracking.
 """

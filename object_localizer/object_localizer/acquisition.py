@@ -1,4 +1,5 @@
-"""Global acquisition of a known object in a scene cloud, from nothing (pure core, no ROS).
+"""
+Global acquisition of a known object in a scene cloud, from nothing (pure core, no ROS).
 
 API (the tracker and the node build on these; signatures are stable)::
 
@@ -51,15 +52,14 @@ import time
 from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
-import open3d as o3d
-
 from object_localizer.localization import (fpfh_features, match_features_ransac,
                                            ModelTemplate, prepare_model, prepare_scene,
                                            remove_dominant_plane)
-from object_localizer.ppf import build_ppf_model, cluster_poses, PPFModel, ppf_vote
+from object_localizer.ppf import build_ppf_model, cluster_poses, ppf_vote, PPFModel
 from object_localizer.verification import (as_camera, CameraLike, observe_depth, ObservedDepth,
                                            sample_model_surface, score_pose_visibility,
                                            SurfaceSamples, unoccluded_mask, VisibilityScore)
+import open3d as o3d
 from stereo_manip_tools.mesh_io import PolygonMesh
 
 __all__ = [
@@ -80,7 +80,8 @@ METHODS = ('ppf', 'fpfh')
 
 @dataclass
 class AcquisitionModel:
-    """Everything acquisition needs about one object model (build once, reuse per cloud).
+    """
+    Everything acquisition needs about one object model (build once, reuse per cloud).
 
     :ivar name: model name.
     :ivar template: samples + FPFH features at ``template.voxel_size`` (ICP and the FPFH path).
@@ -102,7 +103,8 @@ class AcquisitionModel:
 
 @dataclass
 class Hypothesis:
-    """One acquisition result (best first in :func:`acquire_object`'s list).
+    """
+    One acquisition result (best first in :func:`acquire_object`'s list).
 
     :ivar pose: 4x4 model -> camera optical frame (after refinement when ``refined``).
     :ivar score: final ranking score in [0, 1]: ``visibility.combined`` (visible-surface
@@ -129,7 +131,10 @@ class Hypothesis:
 
 @dataclass
 class AcquisitionScene:
-    """A scene cloud with the derived data acquisition needs, computed lazily and cached (one
+    """
+    A scene cloud with the derived data acquisition needs.
+
+    A scene cloud with the derived data acquisition needs, computed lazily and cached (one
     per cloud, shared by all objects searched in it).
 
     :ivar points: (N, 3) finite scene points [m], optical frame.
@@ -145,8 +150,12 @@ class AcquisitionScene:
 
     def cloud(self, voxel: float, drop_plane: bool = False,
               min_plane_extent: float = 0.0, seed: int = 0) -> o3d.geometry.PointCloud:
-        """The scene down-sampled at ``voxel`` [m] with normals towards the sensor, optionally
-        without its dominant plane (a table larger than ``min_plane_extent``)."""
+        """
+        Return the scene down-sampled at ``voxel`` [m] with normals towards the sensor.
+
+        The scene down-sampled at ``voxel`` [m] with normals towards the sensor, optionally
+        without its dominant plane (a table larger than ``min_plane_extent``).
+        """
         key = (round(voxel, 6), drop_plane, round(min_plane_extent, 4) if drop_plane else 0)
         if key in self._clouds:
             return self._clouds[key]
@@ -165,7 +174,7 @@ class AcquisitionScene:
         return pcd
 
     def downsampled(self, voxel: float) -> o3d.geometry.PointCloud:
-        """The scene down-sampled at ``voxel`` [m], without normals (cached)."""
+        """Return the scene down-sampled at ``voxel`` [m], without normals (cached)."""
         key = ('plain', round(voxel, 6))
         if key not in self._clouds:
             pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
@@ -174,8 +183,7 @@ class AcquisitionScene:
 
     def crop(self, cloud: o3d.geometry.PointCloud, centre_model: np.ndarray, pose: np.ndarray,
              radius: float) -> o3d.geometry.PointCloud:
-        """The points of ``cloud`` within ``radius`` [m] of ``pose`` applied to
-        ``centre_model``."""
+        """Select points of ``cloud`` within ``radius`` [m] of ``pose`` @ ``centre_model``."""
         c = pose[:3, :3] @ centre_model + pose[:3, 3]
         P = np.asarray(cloud.points)
         idx = np.flatnonzero(np.sum((P - c) ** 2, axis=1) <= radius * radius)
@@ -192,7 +200,8 @@ def prepare_acquisition_model(mesh: PolygonMesh, *, ppf_relative_step: float = 0
                               ppf_max_step: float = 0.01, icp_voxel: float = 0.003,
                               surface_spacing: float = 0.0015,
                               seed: int = 0) -> AcquisitionModel:
-    """Build the matching data of a model: ICP/FPFH template, PPF table, render samples.
+    """
+    Build the matching data of a model: ICP/FPFH template, PPF table, render samples.
 
     :param ppf_relative_step: PPF sampling and distance step as a fraction of the diameter
         (Drost: 0.05) ...
@@ -220,7 +229,8 @@ def prepare_acquisition_model(mesh: PolygonMesh, *, ppf_relative_step: float = 0
 
 def prepare_acquisition_scene(scene_points: np.ndarray, scene_normals: Optional[np.ndarray] = None,
                               camera: CameraLike = None) -> AcquisitionScene:
-    """Wrap a scene cloud for :func:`acquire_object` (reuse it for every object of the cloud).
+    """
+    Wrap a scene cloud for :func:`acquire_object` (reuse it for every object of the cloud).
 
     :param scene_points: (N, 3) or organised (H, W, 3) points [m], optical frame; non-finite
         points are dropped (with their normals).
@@ -276,7 +286,10 @@ def _rough_fpfh(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
 
 def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
             max_points: int = 2000, wide: bool = True) -> Tuple[np.ndarray, float, float]:
-    """Point-to-plane ICP with a Tukey M-estimator annealed from the PPF step down to the stereo
+    """
+    Refine a pose by point-to-plane ICP with an annealed Tukey M-estimator.
+
+    Point-to-plane ICP with a Tukey M-estimator annealed from the PPF step down to the stereo
     noise (k = step -> 4 mm -> 1.5 mm, search radius 2k -> 2k -> 5 mm), on the scene around the
     pose; only the model samples the camera sees (facing it and not hidden behind observed
     surfaces: :func:`~object_localizer.verification.unoccluded_mask`), refreshed per stage, at
@@ -319,7 +332,10 @@ def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
 
 def _slide_search(model: AcquisitionModel, pose: np.ndarray, observed: ObservedDepth,
                   tolerance: float) -> Tuple[np.ndarray, bool]:
-    """Pattern search of the pose's translation along the model's principal axes (steps of
+    """
+    Search the pose's translation along the model's principal axes.
+
+    Pattern search of the pose's translation along the model's principal axes (steps of
     diam/4 halved down to 4 mm), keeping moves that raise the combined visibility score by
     more than 0.01 (the score's resolution on coarse pixels); ICP then does the fine part.
 
@@ -360,7 +376,10 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
                    fpfh_attempts: int = 4,
                    rough_tolerance: Optional[float] = None,
                    fine_tolerance: float = 0.004) -> List[Hypothesis]:
-    """Find ``model`` in a scene cloud with no initial pose (module doc: rough, verification,
+    """
+    Find ``model`` in a scene cloud with no initial pose.
+
+    Find ``model`` in a scene cloud with no initial pose (module doc: rough, verification,
     refinement).
 
     :param model: :func:`prepare_acquisition_model` output (a mesh is prepared on the fly).

@@ -1,15 +1,18 @@
-"""Messages <-> arrays for the object localizer (the only module besides the node that knows
-ROS message types)."""
+"""
+Messages <-> arrays for the object localizer.
+
+Messages <-> arrays for the object localizer (the only module besides the node that knows
+ROS message types).
+"""
 
 from __future__ import annotations
 
 from typing import Optional
 
 import numpy as np
+from object_localizer.tracking import PoseQuality, TrackState
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
-
-from object_localizer.tracking import PoseQuality, TrackState
 from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import read_pointcloud2
 
@@ -18,8 +21,11 @@ __all__ = ['cloud_xyz', 'track_status']
 
 def cloud_xyz(msg: PointCloud2, max_points: Optional[int] = None, voxel_size: float = 0.0
               ) -> np.ndarray:
-    """x, y, z of a ``PointCloud2`` as an (N, 3) float32 array [m]; rows may be NaN (organised
-    clouds keep them; :class:`object_localizer.tracking.SceneCloud` ignores them).
+    """
+    x, y, z of a ``PointCloud2`` as an (N, 3) float32 array [m].
+
+    Rows may be NaN (organised clouds keep them; :class:`object_localizer.tracking.SceneCloud`
+    ignores them).
 
     Read by the shared hardened reader
     :func:`stereo_manip_tools.conversions.read_pointcloud2` (checked layout; NaN/inf and
@@ -35,7 +41,7 @@ def cloud_xyz(msg: PointCloud2, max_points: Optional[int] = None, voxel_size: fl
 
 def track_status(header: Header, name: str, state: TrackState, quality: PoseQuality | None,
                  reason: str) -> TrackStatus:
-    """The ``TrackStatus`` of one object for one processed cloud."""
+    """Make the ``TrackStatus`` of one object for one processed cloud."""
     msg = TrackStatus(header=header, object_name=name, state=int(state), reason=reason)
     if quality is not None:
         msg.quality = float(quality.quality)

@@ -1,4 +1,5 @@
-"""Model-based localisation of known objects in a point cloud (Section 2.2 of the chapter).
+"""
+Model-based localisation of known objects in a point cloud (Section 2.2 of the chapter).
 
 Rough localisation: local descriptors (FPFH) matched between the model and the scene, with
 RANSAC rejecting wrong correspondences (Fischler & Bolles) and the rigid transform of each
@@ -43,7 +44,8 @@ __all__ = [
 
 @dataclass
 class ModelTemplate:
-    """A model ready for matching: surface samples, normals and FPFH features.
+    """
+    A model ready for matching: surface samples, normals and FPFH features.
 
     :ivar name: model name.
     :ivar points: surface samples [m] in the model frame, shape (N, 3).
@@ -61,7 +63,8 @@ class ModelTemplate:
 
 @dataclass
 class LocalizationResult:
-    """Outcome of a localisation.
+    """
+    Outcome of a localisation.
 
     :ivar pose: 4x4 model -> sensor transform.
     :ivar inlier_fraction: share of the model samples facing the sensor that lie within
@@ -84,8 +87,12 @@ def fpfh_features(cloud: o3d.geometry.PointCloud,
 
 
 def sample_surface(mesh: PolygonMesh, count: int, seed: int = 0) -> o3d.geometry.PointCloud:
-    """``count`` uniform samples of the mesh surface with their outward face normals, in the
-    model frame [m]; seeded (``o3d.utility.random.seed``) so the samples repeat."""
+    """
+    Sample the mesh surface uniformly, with outward face normals.
+
+    ``count`` uniform samples of the mesh surface with their outward face normals, in the
+    model frame [m]; seeded (``o3d.utility.random.seed``) so the samples repeat.
+    """
     tm = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
                                    o3d.utility.Vector3iVector(mesh.triangles()))
     tm.compute_triangle_normals()
@@ -94,8 +101,11 @@ def sample_surface(mesh: PolygonMesh, count: int, seed: int = 0) -> o3d.geometry
 
 
 def facing_sensor(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Mask (N,) of the points (N, 3) [m, sensor frame] whose normals face a sensor at the
-    origin: the surface stereo can see, self-occlusion aside."""
+    """
+    Mask (N,) of the points (N, 3) [m, sensor frame] whose normals face a sensor at the origin.
+
+    The surface stereo can see, self-occlusion aside.
+    """
     return np.einsum('ij,ij->i', normals, -points) > 0
 
 
@@ -110,7 +120,8 @@ def prepare_model(mesh: PolygonMesh, voxel_size: float = 0.003, samples: int = 2
 
 
 def prepare_scene(points: np.ndarray, voxel_size: float) -> o3d.geometry.PointCloud:
-    """Down-sample a scene cloud (N, 3) [m] and estimate normals oriented towards the sensor.
+    """
+    Down-sample a scene cloud (N, 3) [m] and estimate normals oriented towards the sensor.
 
     :raises ValueError: wrong shape or fewer than 10 finite points.
     """
@@ -129,8 +140,12 @@ def prepare_scene(points: np.ndarray, voxel_size: float) -> o3d.geometry.PointCl
 
 def remove_dominant_plane(scene: o3d.geometry.PointCloud, distance: float, min_extent: float,
                           min_fraction: float = 0.3, seed: int = 0) -> o3d.geometry.PointCloud:
-    """Drop the largest plane (a table) if it holds at least ``min_fraction`` of the points and
-    spans more than ``min_extent`` [m] (so an object's own face is never taken for a table)."""
+    """
+    Drop the largest plane (a table) of a scene cloud.
+
+    Drop the largest plane (a table) if it holds at least ``min_fraction`` of the points and
+    spans more than ``min_extent`` [m] (so an object's own face is never taken for a table).
+    """
     o3d.utility.random.seed(seed)
     if len(scene.points) < 3:
         return scene
@@ -146,7 +161,8 @@ def remove_dominant_plane(scene: o3d.geometry.PointCloud, distance: float, min_e
 def rough_localize(model: ModelTemplate, scene: o3d.geometry.PointCloud, *,
                    seed: int = 0, max_iterations: int = 200000,
                    confidence: float = 0.999) -> np.ndarray:
-    """Global pose hypothesis by FPFH matching + RANSAC (Umeyama per hypothesis); 4x4.
+    """
+    Global pose hypothesis by FPFH matching + RANSAC (Umeyama per hypothesis); 4x4.
 
     Seeded (``o3d.utility.random.seed``) so results repeat.
     """
@@ -160,7 +176,8 @@ def match_features_ransac(model: ModelTemplate, scene: o3d.geometry.PointCloud,
                           scene_features: o3d.pipelines.registration.Feature, *, seed: int,
                           max_iterations: int, confidence: float = 0.999
                           ) -> Tuple[np.ndarray, float]:
-    """One seeded FPFH-correspondence RANSAC run of ``model`` against ``scene``.
+    """
+    One seeded FPFH-correspondence RANSAC run of ``model`` against ``scene``.
 
     :returns: the pose (4x4, model -> scene frame) and Open3D's fitness (inlier fraction of
         the model cloud, 0..1).
@@ -192,7 +209,8 @@ def _visible_model(model: ModelTemplate, pose: np.ndarray) -> o3d.geometry.Point
 def fine_localize(model: ModelTemplate, scene: o3d.geometry.PointCloud, initial: np.ndarray, *,
                   max_distance: float = 0.01, loss: str = 'tukey', loss_scale: float = 0.0015,
                   max_iterations: int = 50) -> LocalizationResult:
-    """Point-to-plane ICP from ``initial`` with M-estimator weights (``tukey``/``huber``/``l2``).
+    """
+    Point-to-plane ICP from ``initial`` with M-estimator weights (``tukey``/``huber``/``l2``).
 
     Only the model samples facing the sensor take part (the far side is never observed).
 
@@ -229,8 +247,10 @@ def localize(model: ModelTemplate, scene_points: np.ndarray, *,
              loss_scale: float = 0.0015, drop_plane: bool = True, attempts: int = 5,
              accept_fraction: float = 0.9, acquisition: Optional['AcquisitionModel'] = None,
              camera: Optional[object] = None) -> LocalizationResult:
-    """Localise ``model`` in a scene cloud (N, 3) [m]: fine from ``prior`` when it holds, else
-    rough + fine.
+    """
+    Localise ``model`` in a scene cloud (N, 3) [m].
+
+    Fine from ``prior`` when it holds, else rough + fine.
 
     The global search runs up to ``attempts`` seeded RANSAC hypotheses, each refined, and keeps
     the one with the most inliers (then the lowest RMS); it stops early once a hypothesis
@@ -292,7 +312,10 @@ def crop_around(points: np.ndarray, model: ModelTemplate, pose: np.ndarray,
 
 def segment_object_points(points: np.ndarray, model: ModelTemplate, pose: np.ndarray,
                           margin: float = 0.005) -> np.ndarray:
-    """Scene points (N, 3) [m] that fall inside the model's bounding box at ``pose``, grown by
+    """
+    Cut the object's own points out of a scene cloud.
+
+    Scene points (N, 3) [m] that fall inside the model's bounding box at ``pose``, grown by
     ``margin`` [m] on every side: the object's own cloud, e.g. for implicit-polynomial fitting.
     """
     P = np.asarray(points, dtype=float)

@@ -1,4 +1,5 @@
-"""``object_localizer_node``: finds, tracks and verifies known models in ``points2``.
+"""
+``object_localizer_node``: finds, tracks and verifies known models in ``points2``.
 
 Subscribes ``points2`` (sensor_msgs/PointCloud2; organised or not; QoS from ``input_qos``). A
 worker thread always processes the newest cloud (older unprocessed clouds are dropped and
@@ -20,22 +21,21 @@ import sys
 import threading
 from typing import Dict, List, Optional
 
-import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
-    SetParametersResult
-from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
-from rclpy.parameter import Parameter
-from sensor_msgs.msg import PointCloud2
-
+import numpy as np
 from object_localizer.acquisition import prepare_acquisition_model
 from object_localizer.conversions import cloud_xyz, track_status
 from object_localizer.localization import segment_object_points
 from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
     same_shape, SceneCloud, TrackerSettings
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
+    SetParametersResult
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
 from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, stamp_to_ns, \
     xyz_to_pointcloud2
@@ -46,7 +46,7 @@ from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_
     string_descriptor
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 from stereo_manip_tools.tf import PoseTfPublisher
-from stereo_manip_tools.transforms import make_transform, matrix_from_quaternion
+from stereo_manip_tools.transforms import pose_from_xyz_quaternion
 
 __all__ = ['ObjectLocalizerNode', 'main']
 
@@ -166,9 +166,8 @@ class ObjectLocalizerNode(Node):
             tracker = ObjectTracker(model, replace(self._settings(), static=name in static),
                                     acquirer=acquirer)
             if initial is not None:
-                x, y, z, qx, qy, qz, qw = initial[7 * k:7 * k + 7]
-                tracker.reset(make_transform(matrix_from_quaternion([qx, qy, qz, qw]),
-                                             [x, y, z]))
+                tracker.reset(pose_from_xyz_quaternion(initial[7 * k:7 * k + 7],
+                                                       f'initial_poses of {name}'))
             self.trackers[name] = tracker
             self.pose_pubs[name] = self.create_publisher(PoseStamped, f'objects/{name}/pose', 10)
             self.status_pubs[name] = self.create_publisher(TrackStatus,
@@ -213,7 +212,7 @@ class ObjectLocalizerNode(Node):
                                   for name, field in self._SETTING_OF_PARAMETER.items()})
 
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
-        """The only writer of tracker settings at run time (ranges are checked by rclpy)."""
+        """Write the tracker settings at run time (the only writer; rclpy checks the ranges)."""
         for p in params:
             if p.name == 'input_qos' and p.value not in INPUT_QOS_CHOICES:
                 return SetParametersResult(successful=False,

@@ -1,4 +1,5 @@
-"""Point-pair-feature voting (Drost, Ulrich, Navab & Ilic, CVPR 2010), in numpy + numba.
+"""
+Point-pair-feature voting (Drost, Ulrich, Navab & Ilic, CVPR 2010), in numpy + numba.
 
 The model is described by every ordered pair of its oriented sample points (m_r, n_r),
 (m_i, n_i): the feature F = (||d||, angle(n_r, d), angle(n_i, d), angle(n_r, n_i)) with
@@ -35,7 +36,8 @@ __all__ = ['PPFModel', 'build_ppf_model', 'ppf_vote', 'cluster_poses']
 
 @dataclass
 class PPFModel:
-    """The hash table of a model's point-pair features (see the module doc).
+    """
+    The hash table of a model's point-pair features (see the module doc).
 
     :ivar points: (M, 3) sampled model points [m], model frame.
     :ivar normals: (M, 3) their outward unit normals.
@@ -177,8 +179,8 @@ def _build_table(P, N, frames, dstep, nd, nb, cap):  # pragma: no cover - numba
 def build_ppf_model(points: np.ndarray, normals: np.ndarray, distance_step: float, *,
                     angle_bins: int = 30, alpha_bins: int = 30,
                     max_entries_per_feature: int = 40) -> PPFModel:
-    """Feature table of a model sampled at about ``distance_step`` [m] (Drost: 0.05 x the
-    diameter).
+    """
+    Feature table of a model sampled at about ``distance_step`` [m] (Drost: 0.05 x the diameter).
 
     A feature value shared by more than ``max_entries_per_feature`` model pairs (planar
     faces, spheres, cylinders: many pairs look alike) keeps that many, evenly spread over the
@@ -282,7 +284,8 @@ def _rot_x(a: np.ndarray) -> np.ndarray:
 def ppf_vote(model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, *,
              reference_stride: int = 5, peaks_per_reference: int = 2,
              seed: int = 0) -> Tuple[np.ndarray, np.ndarray]:
-    """Pose votes of a scene for ``model``.
+    """
+    Pose votes of a scene for ``model``.
 
     :param scene_points: (S, 3) scene samples [m] at about the model's ``distance_step``.
     :param scene_normals: (S, 3) their unit normals, pointing out of the surface (towards the
@@ -327,11 +330,13 @@ def ppf_vote(model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarra
 def cluster_poses(poses: np.ndarray, votes: np.ndarray, centre: np.ndarray,
                   translation_threshold: float, rotation_threshold: float,
                   max_clusters: int = 50) -> Tuple[np.ndarray, np.ndarray]:
-    """Greedy pose clustering (Drost): poses in order of votes join the first cluster whose
-    seed pose is within ``translation_threshold`` [m] (of the model point ``centre``) and
-    ``rotation_threshold`` [rad]; a cluster's score is the sum of its members' votes and its
-    pose the vote-weighted mean of its members (chordal mean of the rotations, mean of the
-    centre).
+    """
+    Greedy pose clustering (Drost).
+
+    Poses in order of votes join the first cluster whose seed pose is within
+    ``translation_threshold`` [m] (of the model point ``centre``) and ``rotation_threshold`` [rad];
+    a cluster's score is the sum of its members' votes and its pose the vote-weighted mean of its
+    members (chordal mean of the rotations, mean of the centre).
 
     :return: cluster poses (C, 4, 4) and scores (C,), best first, C <= max_clusters.
     """

@@ -1,4 +1,5 @@
-"""Symmetries of a model and symmetry-aware pose errors (pure core, no ROS).
+"""
+Symmetries of a model and symmetry-aware pose errors (pure core, no ROS).
 
 A pose of a symmetric object is only defined up to its symmetries: a cube turned by a quarter
 turn, a cylinder turned about its axis, a sphere turned any way look the same, so "the" error of
@@ -26,7 +27,8 @@ __all__ = ['ModelSymmetry', 'find_symmetries', 'symmetric_pose_error']
 
 @dataclass
 class ModelSymmetry:
-    """Proper rotational symmetries of a model about ``centroid`` (model frame).
+    """
+    Proper rotational symmetries of a model about ``centroid`` (model frame).
 
     :ivar centroid: (3,) centroid of the surface [m], fixed by every symmetry.
     :ivar rotations: (K, 3, 3) discrete symmetry rotations (identity included).
@@ -40,12 +42,16 @@ class ModelSymmetry:
 
     @property
     def fully_symmetric(self) -> bool:
-        """True when every rotation is a symmetry (two independent continuous axes)."""
+        """Tell whether every rotation is a symmetry (two independent continuous axes)."""
         return len(self.continuous_axes) >= 2
 
     def rotation_set(self, step_deg: float = 0.25) -> np.ndarray:
-        """(M, 3, 3) rotations equivalent to the identity: the discrete ones, each composed with
-        turns about the continuous axis (if any) every ``step_deg`` degrees."""
+        """
+        (M, 3, 3) rotations equivalent to the identity.
+
+        The discrete ones, each composed with turns about the continuous axis (if any) every
+        ``step_deg`` degrees.
+        """
         if len(self.continuous_axes) == 0:
             return self.rotations
         axis = self.continuous_axes[0]
@@ -55,10 +61,14 @@ class ModelSymmetry:
 
 
 def _candidate_axes(Q: np.ndarray, normals: np.ndarray | None, count: int = 12) -> np.ndarray:
-    """The model frame's axes (exact for models built symmetric in their own frame), the
+    """
+    Axes a symmetry of the model may turn about.
+
+    The model frame's axes (exact for models built symmetric in their own frame), the
     non-degenerate principal axes of the centred samples and the ``count`` most frequent normal
     directions (antipodes merged): the axes a symmetry of a polyhedron or a solid of
-    revolution turns about. Earlier axes win over later ones within 2.5 degrees."""
+    revolution turns about. Earlier axes win over later ones within 2.5 degrees.
+    """
     vals, vecs = np.linalg.eigh(Q.T @ Q)
     axes = [np.eye(3)[k] for k in range(3)]
     for k in range(3):
@@ -85,7 +95,8 @@ def _candidate_axes(Q: np.ndarray, normals: np.ndarray | None, count: int = 12) 
 
 def find_symmetries(points: np.ndarray, spacing: float, normals: np.ndarray | None = None,
                     tolerance: float = 0.5) -> ModelSymmetry:
-    """Proper rotational symmetries of a surface given by near-uniform samples.
+    """
+    Proper rotational symmetries of a surface given by near-uniform samples.
 
     A rotation about the centroid is a symmetry when the rotated samples lie on the surface:
     mean nearest-sample distance below ``tolerance * spacing`` and 99th percentile below
@@ -139,7 +150,8 @@ def find_symmetries(points: np.ndarray, spacing: float, normals: np.ndarray | No
 def symmetric_pose_error(pose_estimate: np.ndarray, pose_true: np.ndarray,
                          symmetry: ModelSymmetry,
                          rotation_set: np.ndarray | None = None) -> Tuple[float, float]:
-    """Symmetry-aware pose error: (translation of the centroid [m], rotation [rad]).
+    """
+    Symmetry-aware pose error: (translation of the centroid [m], rotation [rad]).
 
     The rotation error is the smallest angle of ``R_est^T R_true G`` over the symmetry
     rotations G (0 for a fully symmetric model); the centroid, fixed by every symmetry, gives

@@ -1,4 +1,5 @@
-"""6-DOF tracking of known models at camera rate, with a quality check on every pose (pure core).
+"""
+6-DOF tracking of known models at camera rate, with a quality check on every pose (pure core).
 
 Per cloud and object (:meth:`ObjectTracker.update`):
 
@@ -45,10 +46,9 @@ import time
 from typing import Any, Callable, Deque, Optional, Sequence, Tuple
 
 import numpy as np
-import open3d as o3d
-
 from object_localizer.localization import localize, ModelTemplate, prepare_model, sample_surface
 from object_localizer.point_to_plane import icp_point_to_plane
+import open3d as o3d
 from stereo_manip_tools.mesh_io import PolygonMesh
 from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
@@ -69,7 +69,8 @@ class TrackState(enum.IntEnum):
 
 @dataclass
 class TrackerSettings:
-    """Tracker parameters (metres, seconds).
+    """
+    Tracker parameters (metres, seconds).
 
     :ivar max_distance: ICP correspondence radius [m] at the last ICP stage (twice that first).
     :ivar loss_scale: Tukey M-estimator scale k [m] at the last stage (annealed from 3k).
@@ -162,7 +163,8 @@ class TrackerSettings:
 
 @dataclass
 class TrackingModel:
-    """A model prepared for tracking and checking.
+    """
+    A model prepared for tracking and checking.
 
     :ivar template: the acquisition template (FPFH features, see ``prepare_model``).
     :ivar points: dense surface samples [m] in the model frame, (N, 3).
@@ -188,8 +190,7 @@ class TrackingModel:
     acquisition: Any = None       # object_localizer.acquisition.AcquisitionModel, built lazily
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
-        """Signed distance [m] of points (M, 3) in the model frame to its surface (< 0
-        inside)."""
+        """Signed distance [m] of points (M, 3) in the model frame to its surface (< 0 inside)."""
         q = o3d.core.Tensor(np.asarray(points, dtype=np.float32))
         return self.solid.compute_signed_distance(q).numpy().astype(float)
 
@@ -217,8 +218,12 @@ def prepare_tracking_model(mesh: PolygonMesh, voxel_size: float = 0.003,
 
 def penetration(model: TrackingModel, pose: np.ndarray, other: TrackingModel,
                 other_pose: np.ndarray, depth: float) -> float:
-    """Share of ``model``'s interior points at ``pose`` lying more than ``depth`` [m] inside
-    ``other`` at ``other_pose`` (both 4x4 model -> sensor): the overlap of the two volumes."""
+    """
+    Share of ``model``'s interior points inside ``other``.
+
+    Share of ``model``'s interior points at ``pose`` lying more than ``depth`` [m] inside
+    ``other`` at ``other_pose`` (both 4x4 model -> sensor): the overlap of the two volumes.
+    """
     centre = pose[:3, :3] @ model.centre + pose[:3, 3]
     other_centre = other_pose[:3, :3] @ other.centre + other_pose[:3, 3]
     if np.linalg.norm(centre - other_centre) > model.radius + other.radius:
@@ -237,8 +242,11 @@ def mean_displacement(model: TrackingModel, pose_a: np.ndarray, pose_b: np.ndarr
 
 
 def symmetric_distance(model: TrackingModel, pose_a: np.ndarray, pose_b: np.ndarray) -> float:
-    """ADD-S [m] between two poses of the model (its probe points): about 0 for poses that are
-    equivalent under the model's symmetries."""
+    """
+    Compute the ADD-S [m] between two poses of the model (its probe points).
+
+    About 0 for poses that are equivalent under the model's symmetries.
+    """
     from scipy.spatial import cKDTree
 
     A = model.probe @ pose_a[:3, :3].T + pose_a[:3, 3]
@@ -247,9 +255,13 @@ def symmetric_distance(model: TrackingModel, pose_a: np.ndarray, pose_b: np.ndar
 
 
 def same_shape(a: TrackingModel, b: TrackingModel, tolerance: float = 0.001) -> bool:
-    """Whether two models are the same part (sorted bounding-box extents equal within
+    """
+    Tell whether two models are the same part.
+
+    Whether two models are the same part (sorted bounding-box extents equal within
     ``tolerance`` [m] and surface sample counts within 2 %): acquisition cannot tell them
-    apart by geometry."""
+    apart by geometry.
+    """
     ea = np.sort(a.box_max - a.box_min)
     eb = np.sort(b.box_max - b.box_min)
     return bool(np.all(np.abs(ea - eb) <= tolerance)
@@ -258,10 +270,13 @@ def same_shape(a: TrackingModel, b: TrackingModel, tolerance: float = 0.001) -> 
 
 def predict_constant_velocity(model: TrackingModel, history: Tuple[Tuple[int, np.ndarray], ...],
                               stamp_ns: int, max_extrapolation: float = 3.0) -> np.ndarray:
-    """Pose at ``stamp_ns`` from the last two ``(stamp_ns, pose)`` of ``history``: the model
-    centre moves on at its last linear velocity and the object turns on at its last angular
-    velocity. The extrapolation is capped at ``max_extrapolation`` times the last interval
-    (a long gap in the stream is not a reason to fly away); one pose: that pose."""
+    """
+    Pose at ``stamp_ns`` from the last two ``(stamp_ns, pose)`` of ``history``.
+
+    The model centre moves on at its last linear velocity and the object turns on at its last
+    angular velocity. The extrapolation is capped at ``max_extrapolation`` times the last interval
+    (a long gap in the stream is not a reason to fly away); one pose: that pose.
+    """
     if not history:
         raise ValueError('no pose to predict from')
     t1, T1 = history[-1]
@@ -285,8 +300,11 @@ def predict_constant_velocity(model: TrackingModel, history: Tuple[Tuple[int, np
 
 
 class SceneCloud:
-    """One scene cloud (N, 3) [m, sensor frame], shared by every object of a frame; crops are
-    computed on demand. Non-finite rows are allowed (organised clouds) and ignored."""
+    """
+    One scene cloud (N, 3) [m, sensor frame], shared by every object of a frame.
+
+    Crops are computed on demand. Non-finite rows are allowed (organised clouds) and ignored.
+    """
 
     def __init__(self, points: np.ndarray) -> None:
         P = np.asarray(points)
@@ -301,8 +319,12 @@ class SceneCloud:
                              'in front of the sensor')
 
     def cone(self, centre: np.ndarray, radius: float) -> np.ndarray:
-        """Points (M, 3) float64 on rays through the sphere (``centre`` [m], ``radius`` [m]),
-        at any depth: what the sensor sees in the direction of an object there."""
+        """
+        Points (M, 3) on rays through a sphere, at any depth.
+
+        Points (M, 3) float64 on rays through the sphere (``centre`` [m], ``radius`` [m]),
+        at any depth: what the sensor sees in the direction of an object there.
+        """
         cz = float(centre[2])
         if cz <= radius:
             return np.empty((0, 3))
@@ -332,7 +354,8 @@ class SceneCloud:
 
 @dataclass
 class PoseQuality:
-    """Result of :func:`check_pose` (see the module docstring).
+    """
+    Result of :func:`check_pose` (see the module docstring).
 
     :ivar quality: summary in [0, 1]: the inlier fraction, reduced linearly by the residual, the
         free-space violations and the prediction error relative to their limits, and scaled by
@@ -356,8 +379,12 @@ class PoseQuality:
 
 def _range_image(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[int, int]
                  ) -> np.ndarray:
-    """Nearest depth per pixel of a virtual pinhole image in normalised coordinates (x/z, y/z)
-    with pixel size ``pixel`` from ``lo``; NaN where nothing is observed."""
+    """
+    Nearest depth per pixel of a virtual pinhole image.
+
+    Nearest depth per pixel of a virtual pinhole image in normalised coordinates (x/z, y/z)
+    with pixel size ``pixel`` from ``lo``; NaN where nothing is observed.
+    """
     img = np.full(shape[0] * shape[1], np.inf)
     if len(points):
         idx, ok = _pixels(points, pixel, lo, shape)
@@ -432,7 +459,10 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
                settings: TrackerSettings, prediction: Optional[np.ndarray] = None,
                others: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
                acquisition: bool = False) -> PoseQuality:
-    """Visibility-aware check of ``pose`` against the scene points on the rays through the
+    """
+    Check ``pose`` against the scene points on the rays through the object.
+
+    Visibility-aware check of ``pose`` against the scene points on the rays through the
     object (``SceneCloud.cone``), see the module docstring.
 
     :param prediction: the motion prediction (4x4) the pose is compared with; None: no check.
@@ -548,11 +578,14 @@ def _visible_target(model: TrackingModel, pose: np.ndarray) -> Tuple[np.ndarray,
 
 def track_icp(model: TrackingModel, near_points: np.ndarray, start: np.ndarray,
               settings: TrackerSettings) -> np.ndarray:
-    """Point-to-plane ICP with a Tukey M-estimator from ``start``: the scene points near the
-    object (M, 3) [m] are aligned to the model samples facing the sensor (exact normals), in
-    two stages (kernel 3k, radius 2 x max_distance; then k, max_distance); returns the pose.
-    The iterations are :func:`object_localizer.point_to_plane.icp_point_to_plane` (Open3D's
-    Tukey point-to-plane ICP, compiled, with its grid-based exact nearest neighbours)."""
+    """
+    Point-to-plane ICP with a Tukey M-estimator from ``start``.
+
+    The scene points near the object (M, 3) [m] are aligned to the model samples facing the sensor
+    (exact normals), in two stages (kernel 3k, radius 2 x max_distance; then k, max_distance);
+    returns the pose. The iterations are :func:`object_localizer.point_to_plane.icp_point_to_plane`
+    (Open3D's Tukey point-to-plane ICP, compiled, with its grid-based exact nearest neighbours).
+    """
     s = settings
     S = np.asarray(near_points, dtype=np.float64)
     if s.scene_voxel > 0:
@@ -577,7 +610,8 @@ def track_icp(model: TrackingModel, near_points: np.ndarray, start: np.ndarray,
 
 @dataclass
 class TrackUpdate:
-    """Outcome of one cloud for one object.
+    """
+    Outcome of one cloud for one object.
 
     :ivar pose: the verified pose (4x4), or None: nothing to publish for this cloud.
     :ivar state: the track state after this cloud.
@@ -609,11 +643,15 @@ def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int) -> l
 
 def make_acquirer(method: str, max_candidates: int = 6,
                   time_budget_s: float = 0.0) -> Acquirer:
-    """The global acquisition of ``object_localizer.acquisition`` (``'ppf'``: point-pair-feature
+    """
+    Make the global acquisition of ``object_localizer.acquisition`` an Acquirer.
+
+    The global acquisition of ``object_localizer.acquisition`` (``'ppf'``: point-pair-feature
     voting, ``'fpfh'``: FPFH + RANSAC, both with visibility verification) as an
     :data:`Acquirer`: its best ``max_candidates`` hypotheses, refined or not, best first (the
     tracker refines and checks each in turn); ``'rough_fine'``: :func:`acquire_rough_fine`.
-    The acquisition model is built on first use and kept on the tracking model."""
+    The acquisition model is built on first use and kept on the tracking model.
+    """
     if method == 'rough_fine':
         return acquire_rough_fine
     from object_localizer import acquisition
@@ -652,8 +690,12 @@ class ObjectTracker:
     _others: list = field(default_factory=list)
 
     def reset(self, pose: Optional[np.ndarray] = None) -> None:
-        """Forget the track; ``pose`` (4x4 model -> sensor) is a hint for the next cloud,
-        verified like any pose before it is published."""
+        """
+        Forget the track.
+
+        ``pose`` (4x4 model -> sensor) is a hint for the next cloud, verified like any pose before
+        it is published.
+        """
         self.history.clear()
         self.hint = None if pose is None else np.asarray(pose, dtype=float).copy()
         self.reference = self.hint
@@ -687,7 +729,8 @@ class ObjectTracker:
 
     def update(self, points: np.ndarray | SceneCloud, stamp_ns: int,
                others: Sequence[Tuple[TrackingModel, np.ndarray]] = ()) -> TrackUpdate:
-        """Process one cloud (N, 3) [m] (or a :class:`SceneCloud` shared by several trackers).
+        """
+        Process one cloud (N, 3) [m] (or a :class:`SceneCloud` shared by several trackers).
 
         :param others: the verified (model, pose) of other objects in this cloud; a pose that
             penetrates one of them fails the check.
@@ -747,7 +790,7 @@ class ObjectTracker:
         return self._acquire(scene, stamp_ns, '')
 
     def _acquire(self, scene: SceneCloud, stamp_ns: int, prefix: str) -> TrackUpdate:
-        """A hint first (verified), else the global search from scratch."""
+        """Try a hint first (verified), else the global search from scratch."""
         s = self.settings
         if self.hint is not None:
             hint, self.hint = self.hint, None
@@ -821,7 +864,7 @@ class ObjectTracker:
                            'them apart; not published')
 
     def known_pose(self) -> Optional[np.ndarray]:
-        """The last verified pose, else the last known one (hint, pose before a loss)."""
+        """Return the last verified pose, else the last known one (hint, pose before a loss)."""
         return self.history[-1][1] if self.history else self.reference
 
     def _start(self, stamp_ns: int, pose: np.ndarray, q: PoseQuality, reason: str,

@@ -1,4 +1,5 @@
-"""Pose-hypothesis verification by the visible surface (pure core, no ROS).
+"""
+Pose-hypothesis verification by the visible surface (pure core, no ROS).
 
 A pose hypothesis is checked the way the camera would check it: the model's surface is rendered
 into a depth image with the camera intrinsics (z-buffered splats of dense surface samples, so
@@ -52,7 +53,8 @@ __all__ = [
 
 @dataclass(frozen=True)
 class PinholeCamera:
-    """A pinhole camera at the origin of the optical frame.
+    """
+    A pinhole camera at the origin of the optical frame.
 
     :ivar fx: focal lengths [px].
     :ivar cx: principal point [px] (pixel centres at integer coordinates).
@@ -67,8 +69,12 @@ class PinholeCamera:
     height: int
 
     def scaled(self, stride: int) -> 'PinholeCamera':
-        """The same camera with ``stride``-times fewer pixels per axis (pixel (u, v) of the
-        result covers pixels ``stride*u .. stride*u + stride - 1`` of this one)."""
+        """
+        Return the same camera with ``stride``-times fewer pixels per axis.
+
+        The same camera with ``stride``-times fewer pixels per axis (pixel (u, v) of the
+        result covers pixels ``stride*u .. stride*u + stride - 1`` of this one).
+        """
         s = float(stride)
         return PinholeCamera(self.fx / s, self.fy / s, (self.cx + 0.5) / s - 0.5,
                              (self.cy + 0.5) / s - 0.5, int(np.ceil(self.width / s)),
@@ -79,7 +85,10 @@ CameraLike = Union[PinholeCamera, Mapping[str, Any], None]
 
 
 def as_camera(camera: CameraLike) -> Optional[PinholeCamera]:
-    """A :class:`PinholeCamera` from one, from a mapping with ``fx fy cx cy width height``
+    """
+    Make a :class:`PinholeCamera` of what describes one.
+
+    A :class:`PinholeCamera` from one, from a mapping with ``fx fy cx cy width height``
     (e.g. the synthetic camera's ``truth['camera']``), or ``None``.
 
     :raises ValueError: a mapping lacks a key or has non-positive sizes/focal lengths.
@@ -98,7 +107,10 @@ def as_camera(camera: CameraLike) -> Optional[PinholeCamera]:
 
 
 def virtual_camera(points: np.ndarray, pixel_size: float = 0.002) -> PinholeCamera:
-    """A pinhole camera at the origin that sees every point of ``points`` (N, 3) [m] with
+    """
+    Make a pinhole camera at the origin that sees every point of ``points``.
+
+    A pinhole camera at the origin that sees every point of ``points`` (N, 3) [m] with
     ``pixel_size`` [m] pixels at their median depth: visibility reasoning for clouds that come
     without intrinsics (any pinhole at the sensor centre gives the same visibility).
 
@@ -121,7 +133,8 @@ def virtual_camera(points: np.ndarray, pixel_size: float = 0.002) -> PinholeCame
 
 @dataclass
 class SurfaceSamples:
-    """Dense samples of a model's surface for rendering it (model frame).
+    """
+    Dense samples of a model's surface for rendering it (model frame).
 
     :ivar points: (N, 3) surface points [m].
     :ivar normals: (N, 3) outward unit normals.
@@ -135,7 +148,10 @@ class SurfaceSamples:
 
 def sample_model_surface(mesh: Any, spacing: float = 0.0015,
                          max_samples: int = 30000, seed: int = 0) -> SurfaceSamples:
-    """Near-uniform surface samples of a :class:`~stereo_manip_tools.mesh_io.PolygonMesh` about
+    """
+    Sample the surface of a polygon mesh near-uniformly, with face normals.
+
+    Near-uniform surface samples of a :class:`~stereo_manip_tools.mesh_io.PolygonMesh` about
     ``spacing`` [m] apart (coarser if that would exceed ``max_samples``), with face normals.
 
     :raises ValueError: spacing <= 0 or a mesh without area.
@@ -168,7 +184,8 @@ class ObservedDepth:
 
 @dataclass
 class VisibilityScore:
-    """Outcome of :func:`score_pose_visibility`.
+    """
+    Outcome of :func:`score_pose_visibility`.
 
     :ivar score: ``(inliers - violation_weight * violations) / model_pixels`` in [0, 1].
     :ivar inlier_fraction: inliers / model pixels.
@@ -198,8 +215,11 @@ class VisibilityScore:
 
     @property
     def combined(self) -> float:
-        """``score * (0.25 + 0.75 * edge_fraction)`` (edge fraction 0.5 when unknown): the
-        ranking score of pose hypotheses in acquisition."""
+        """
+        ``score * (0.25 + 0.75 * edge_fraction)`` (edge fraction 0.5 when unknown).
+
+        The ranking score of pose hypotheses in acquisition.
+        """
         e = 0.5 if not np.isfinite(self.edge_fraction) else self.edge_fraction
         return self.score * (0.25 + 0.75 * e)
 
@@ -230,7 +250,8 @@ def _zbuffer(P, fx, fy, cx, cy, width, height, radius):  # pragma: no cover - nu
 
 def observe_depth(scene_points: np.ndarray, camera: CameraLike = None, *, stride: int = 4,
                   pixel_size: float = 0.002) -> ObservedDepth:
-    """The observed depth image of a scene cloud, the reference of :func:`score_pose_visibility`.
+    """
+    Render the depth image observed in a scene cloud (see :func:`score_pose_visibility`).
 
     :param scene_points: the scene [m, optical frame]: (N, 3), or an organised (H, W, 3) cloud
         (NaN = no measurement); non-finite points are ignored.
@@ -262,7 +283,8 @@ def observe_depth(scene_points: np.ndarray, camera: CameraLike = None, *, stride
 def render_model_depth(surface_points: np.ndarray, surface_normals: np.ndarray,
                        pose: np.ndarray, camera: PinholeCamera,
                        spacing: float) -> np.ndarray:
-    """Depth image [m] (NaN = model absent) of a model at ``pose`` on ``camera``.
+    """
+    Depth image [m] (NaN = model absent) of a model at ``pose`` on ``camera``.
 
     Z-buffered splats of the surface samples that face the camera; each splat covers the
     pixels within the sample spacing so the rendered surface has no holes.
@@ -386,7 +408,8 @@ def score_pose_visibility(surface: SurfaceSamples, pose: np.ndarray, observed: O
                           *, inlier_threshold: float = 0.004,
                           violation_weight: float = 1.0,
                           edge_threshold: float = 0.01) -> VisibilityScore:
-    """Visible-surface score of a pose hypothesis against the observed depth (module doc).
+    """
+    Visible-surface score of a pose hypothesis against the observed depth (module doc).
 
     :param surface: dense model-surface samples (:func:`sample_model_surface`; an
         :class:`~object_localizer.acquisition.AcquisitionModel` carries them as ``surface``).
@@ -414,9 +437,11 @@ def score_pose_visibility(surface: SurfaceSamples, pose: np.ndarray, observed: O
 
 def unoccluded_mask(points: np.ndarray, normals: np.ndarray, observed: ObservedDepth,
                     tolerance: float) -> np.ndarray:
-    """Mask (N,) of model points [m, optical frame] the camera can see: normal facing the
-    sensor, and at their pixel the observed depth is not in front of them by more than
-    ``tolerance`` [m] (not hidden behind another object) and is known.
+    """
+    Mask (N,) of model points [m, optical frame] the camera can see.
+
+    Normal facing the sensor, and at their pixel the observed depth is not in front of them by more
+    than ``tolerance`` [m] (not hidden behind another object) and is known.
 
     ICP restricted to these points is not pulled by the surfaces of an occluder.
     """

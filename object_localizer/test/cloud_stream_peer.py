@@ -1,4 +1,5 @@
-"""Producer process for the localizer's process tests: a camera-like stream of clouds.
+"""
+Producer process for the localizer's process tests: a camera-like stream of clouds.
 
 Publishes ``/points2`` (PointCloud2, reliable, 10 Hz) of a scene with the peg moving slowly over
 a table, and the peg's true pose on ``/objects/peg/pose_truth`` with the same stamp. The clouds
@@ -9,18 +10,17 @@ increasing).
 
 import time
 
-import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped
-from rclpy.executors import ExternalShutdownException
+import numpy as np
+from object_localizer.evaluation import sample_visible_surface
+import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial import cKDTree
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
-
-from object_localizer.evaluation import sample_visible_surface
 from stereo_manip_tools.conversions import matrix_to_pose, ns_to_stamp, xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
+from stereo_manip_tools.robustness import spin_until_shutdown
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 FRAMES = 100
@@ -46,31 +46,25 @@ def scene(k: int, rng: np.random.Generator, mesh) -> np.ndarray:
 def main() -> None:
     rclpy.init()
     node = rclpy.create_node('cloud_stream_peer')
-    try:
-        qos = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE)
-        pub = node.create_publisher(PointCloud2, '/points2', qos)
-        truth = node.create_publisher(PoseStamped, '/objects/peg/pose_truth', 10)
-        mesh = load_obj(find_model('peg'))
-        rng = np.random.default_rng(0)
-        clouds = [scene(k, rng, mesh) for k in range(FRAMES)]
-        k = 0
-        t0 = time.time()
+    qos = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE)
+    pub = node.create_publisher(PointCloud2, '/points2', qos)
+    truth = node.create_publisher(PoseStamped, '/objects/peg/pose_truth', 10)
+    mesh = load_obj(find_model('peg'))
+    rng = np.random.default_rng(0)
+    clouds = [scene(k, rng, mesh) for k in range(FRAMES)]
+    k = 0
+    t0 = time.time()
 
-        def tick() -> None:
-            nonlocal k
-            header = Header(frame_id='stereo_left_optical',
-                            stamp=ns_to_stamp(int((t0 + k / RATE) * 1e9)))
-            pub.publish(xyz_to_pointcloud2(clouds[k % FRAMES], header))
-            truth.publish(PoseStamped(header=header, pose=matrix_to_pose(peg_pose(k))))
-            k += 1
-        node.create_timer(1.0 / RATE, tick)
-        node.get_logger().info('streaming')
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    def tick() -> None:
+        nonlocal k
+        header = Header(frame_id='stereo_left_optical',
+                        stamp=ns_to_stamp(int((t0 + k / RATE) * 1e9)))
+        pub.publish(xyz_to_pointcloud2(clouds[k % FRAMES], header))
+        truth.publish(PoseStamped(header=header, pose=matrix_to_pose(peg_pose(k))))
+        k += 1
+    node.create_timer(1.0 / RATE, tick)
+    node.get_logger().info('streaming')
+    spin_until_shutdown(node)
 
 
 if __name__ == '__main__':

@@ -1,9 +1,11 @@
-"""Global acquisition against ground truth: PPF voting, visibility verification, symmetry-aware
-errors, and acquire_object on a stereo cloud of a synthetic scene (pure core, no ROS)."""
+"""
+Global acquisition against ground truth.
+
+PPF voting, visibility verification, symmetry-aware errors, and acquire_object on a stereo cloud of
+a synthetic scene (pure core, no ROS).
+"""
 
 import numpy as np
-import pytest
-
 from object_localizer.acquisition import (acquire_object, prepare_acquisition_model,
                                           prepare_acquisition_scene)
 from object_localizer.evaluation import sample_visible_surface
@@ -11,6 +13,7 @@ from object_localizer.ppf import cluster_poses, ppf_vote
 from object_localizer.symmetry import find_symmetries, symmetric_pose_error
 from object_localizer.verification import (observe_depth, PinholeCamera, sample_model_surface,
                                            score_pose_visibility, unoccluded_mask)
+import pytest
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 

@@ -1,13 +1,12 @@
 """Message conversions and the node in-process (rclpy, no separate process)."""
 
 import numpy as np
-import pytest
-from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import Header
-
 from object_localizer.conversions import cloud_xyz, track_status
 from object_localizer.evaluation import sample_visible_surface
 from object_localizer.tracking import PoseQuality, TrackState
+import pytest
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
 from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import ns_to_stamp, pointcloud2_to_array, xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
@@ -56,8 +55,12 @@ def test_track_status_fields():
 
 
 def test_node_builds_segment_and_path_only_for_subscribers(ros_node):
-    """In-process node: with nobody on objects/<name>/cloud and track, neither is built; with a
-    subscriber both are published. A status is published for every processed cloud."""
+    """
+    The node builds the segment and the path only for subscribers.
+
+    In-process node: with nobody on objects/<name>/cloud and track, neither is built; with a
+    subscriber both are published. A status is published for every processed cloud.
+    """
     from rclpy.parameter import Parameter
     from object_localizer.localizer_node import ObjectLocalizerNode
     from stereo_manip_tools.testing import spin_until

@@ -1,10 +1,9 @@
 """Localisation against ground truth on sampled scenes (pure core, no ROS)."""
 
 import numpy as np
-import pytest
-
 from object_localizer.evaluation import add_s, sample_visible_surface
 from object_localizer.localization import localize, prepare_model, segment_object_points
+import pytest
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis, transform_points
 
@@ -37,8 +36,12 @@ def test_global_localisation_recovers_pose(models):
 
 
 def test_m_estimator_resists_outliers_near_the_object(models):
-    """A stereo mismatch that displaces one end of the object by 7 mm along the line of sight
-    pulls plain least-squares ICP; Tukey's M-estimator ignores it."""
+    """
+    Tukey's M-estimator ignores a stereo mismatch that pulls plain ICP.
+
+    A stereo mismatch that displaces one end of the object by 7 mm along the line of sight
+    pulls plain least-squares ICP; Tukey's M-estimator ignores it.
+    """
     rng = np.random.default_rng(2)
     template = prepare_model(models['link_arm'])
     T = make_transform(rotation_about_axis([0.1, 1.0, 0.3], 1.2), [0.02, -0.03, 0.75])
@@ -53,7 +56,7 @@ def test_m_estimator_resists_outliers_near_the_object(models):
     for loss in ('tukey', 'l2'):
         res = localize(template, cloud, prior=start, loss=loss, min_inlier_fraction=0.0)
         errs[loss] = add_s(res.pose, T, template.points)
-    assert errs["tukey"] < 0.0012
+    assert errs['tukey'] < 0.0012
     assert errs['tukey'] < 0.75 * errs['l2'], errs
 
 

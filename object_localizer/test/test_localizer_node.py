@@ -1,15 +1,13 @@
 """object_localizer_node as its own process: a cloud in, the object's pose out."""
 
-import numpy as np
-import pytest
 from geometry_msgs.msg import PoseStamped
-from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import Header
-
-from stereo_manip_msgs.msg import TrackStatus
-
+import numpy as np
 from object_localizer.evaluation import add_s, sample_visible_surface
 from object_localizer.localization import prepare_model
+import pytest
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import ns_to_stamp, pointcloud2_to_array, pose_to_matrix, \
     xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
@@ -74,7 +72,7 @@ FIRST_POSE_S = 30.0
 
 
 def _start_stream():
-    """The producer (cloud_stream_peer.py) as its own process."""
+    """Start the producer (cloud_stream_peer.py) as its own process."""
     import subprocess
     import sys
     from pathlib import Path
@@ -83,8 +81,12 @@ def _start_stream():
 
 
 def _first_verified_pose_after(node, poses, truths, t_start, timeout):
-    """Seconds from ``t_start`` (monotonic) to the first pose received after it, and that
-    pose's ADD-S against the truth of the same stamp (None if none within ``timeout``)."""
+    """
+    Time to the first pose after ``t_start`` and its ADD-S.
+
+    Seconds from ``t_start`` (monotonic) to the first pose received after it, and that
+    pose's ADD-S against the truth of the same stamp (None if none within ``timeout``).
+    """
     import time
     n0 = len(poses)
     if not spin_until(node, lambda: len(poses) > n0, timeout):
@@ -101,10 +103,12 @@ def _first_verified_pose_after(node, poses, truths, t_start, timeout):
 
 @pytest.mark.process
 def test_producers_first_then_kill_9_and_restart_mid_stream(ros_node):
-    """The stream runs before the localizer starts (no initial pose: global acquisition); the
-    localizer is then killed with SIGKILL mid-stream and restarted: a verified pose within
-    FIRST_POSE_S of each start, the producer never restarted, every pose within 5 mm of the
-    truth."""
+    """
+    The stream runs before the localizer starts (no initial pose: global acquisition).
+
+    The localizer is then killed with SIGKILL mid-stream and restarted: a verified pose within
+    FIRST_POSE_S of each start, the producer never restarted, every pose within 5 mm of the truth.
+    """
     import signal
     import time
     from stereo_manip_msgs.msg import TrackStatus
@@ -139,8 +143,11 @@ def test_producers_first_then_kill_9_and_restart_mid_stream(ros_node):
 
 @pytest.mark.process
 def test_consumers_first(ros_node):
-    """Consumer and localizer up before any cloud exists: a verified pose within FIRST_POSE_S
-    of the producer's first cloud."""
+    """
+    Consumer and localizer up before any cloud exists.
+
+    a verified pose within FIRST_POSE_S of the producer's first cloud.
+    """
     import time
     poses, truths = [], []
     ros_node.create_subscription(PoseStamped, '/objects/peg/pose', poses.append, 10)

@@ -3,11 +3,10 @@
 from dataclasses import replace
 
 import numpy as np
-import pytest
-
 from object_localizer.evaluation import add_s, sample_visible_surface
 from object_localizer.tracking import check_pose, ObjectTracker, predict_constant_velocity, \
     prepare_tracking_model, SceneCloud, TrackerSettings, TrackState
+import pytest
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
@@ -19,7 +18,7 @@ def arm():
 
 
 def wall_behind(T, rng, distance=0.08, n=20000):
-    """A plane facing the sensor ``distance`` [m] behind the object's origin (a table/wall)."""
+    """Make a plane facing the sensor ``distance`` [m] behind the object's origin (a wall)."""
     c = T[:3, 3] + np.array([0.0, 0.0, distance])
     xy = rng.uniform(-0.25, 0.25, size=(n, 2))
     return np.column_stack([c[0] + xy[:, 0], c[1] + xy[:, 1], np.full(n, c[2])])
@@ -79,8 +78,12 @@ def test_tracker_follows_a_moving_object_and_keeps_a_bounded_history(arm):
 
 
 def test_check_rejects_poses_a_few_millimetres_off(arm):
-    """The visibility-aware check passes the truth and fails a pose pushed 6 mm towards the
-    wall (the wall is seen where the object would be: free space) or 6 mm sideways."""
+    """
+    The visibility-aware check rejects poses 6 mm off.
+
+    The visibility-aware check passes the truth and fails a pose pushed 6 mm towards the
+    wall (the wall is seen where the object would be: free space) or 6 mm sideways.
+    """
     mesh, model = arm
     rng = np.random.default_rng(5)
     T = moving_pose(3)
@@ -100,8 +103,11 @@ def test_check_rejects_poses_a_few_millimetres_off(arm):
 
 
 def test_a_wrong_hint_is_not_trusted(arm):
-    """An initial pose 40 mm off fails the check: the global acquisition runs and its result is
-    verified before it is published."""
+    """
+    An initial pose 40 mm off fails the check.
+
+    The global acquisition runs and its result is verified before it is published.
+    """
     mesh, model = arm
     rng = np.random.default_rng(6)
     T = moving_pose(0)
@@ -119,9 +125,12 @@ def test_a_wrong_hint_is_not_trusted(arm):
 
 
 def test_loss_is_reported_and_the_object_reacquired(arm):
-    """The object jumps 15 cm between clouds: the tracked pose fails, no pose is published, the
-    state is LOST; the next cloud runs the global acquisition, whose wrong candidate is refused
-    and whose right one is published."""
+    """
+    The object jumps 15 cm between clouds.
+
+    The tracked pose fails, no pose is published, the state is LOST; the next cloud runs the global
+    acquisition, whose wrong candidate is refused and whose right one is published.
+    """
     mesh, model = arm
     rng = np.random.default_rng(7)
     candidates = []
@@ -197,8 +206,12 @@ def test_unusable_clouds_raise_clear_errors(arm):
 
 
 def test_identical_parts_are_told_apart_only_by_a_known_pose():
-    """link_base and link_arm are the same brick: acquisition from nothing cannot tell which is
-    which, so nothing is published; with hints (even 5 mm off) each gets its own brick."""
+    """
+    link_base and link_arm are the same brick.
+
+    Acquisition from nothing cannot tell which is which, so nothing is published; with hints (even
+    5 mm off) each gets its own brick.
+    """
     from object_localizer.tracking import same_shape
     meshes = {n: load_obj(find_model(n)) for n in ('link_base', 'link_arm')}
     models = {n: prepare_tracking_model(m) for n, m in meshes.items()}
@@ -239,8 +252,12 @@ def test_identical_parts_are_told_apart_only_by_a_known_pose():
 
 
 def _origin_shift(from_model, to_model):
-    """Transform taking to_model's frame to from_model's frame for two identical boxes whose
-    origins differ (both axis-aligned with the same extents): matches the box corners."""
+    """
+    Transform between the frames of two identical boxes with different origins.
+
+    Transform taking to_model's frame to from_model's frame for two identical boxes whose
+    origins differ (both axis-aligned with the same extents): matches the box corners.
+    """
     return make_transform(np.eye(3), from_model.box_min - to_model.box_min)
 
 

@@ -1,4 +1,5 @@
-"""pytest plugin of the Noble-pinned job (tests/test_noble_pinned.py).
+"""
+pytest plugin of the Noble-pinned job (tests/test_noble_pinned.py).
 
 The job runs the package tests with Noble's library versions and without ROS (its venv has no
 rclpy or message packages). A test module whose import fails only because a ROS module is
@@ -12,7 +13,7 @@ import re
 import pytest
 
 # top-level modules that come with ROS, not with the Python libraries the job pins
-ROS_MODULE = re.compile(r'^(rclpy|rosidl_\w+|rpyutils|ament_index_python|launch\w*|\w+_msgs|'
+ROS_MODULE = re.compile(r'^(rclpy|rosidl_\w+|rpyutils|ament_\w+|launch\w*|\w+_msgs|'
                         r'\w+_interfaces|rosbags)$')
 MISSING = re.compile(r"No module named '([\w.]+)'")
 

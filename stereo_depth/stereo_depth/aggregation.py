@@ -1,4 +1,5 @@
-"""Step 2 of the four-step stereo pipeline (chapter Sec. 2.1): cost (support) aggregation.
+"""
+Step 2 of the four-step stereo pipeline (chapter Sec. 2.1): cost (support) aggregation.
 
 The chapter's "first method": estimate a correspondence from a small region around the pixel,
 i.e. sum (or average) the matching cost of every disparity over a window. Cost volumes are
@@ -16,7 +17,8 @@ __all__ = ['box_aggregate', 'box_sum_u16']
 
 def box_aggregate(cost: np.ndarray, window: tuple[int, int] = (5, 5),
                   normalize: bool = True) -> np.ndarray:
-    """Average (or sum) the cost of every disparity over a ``window`` (width, height) box.
+    """
+    Average (or sum) the cost of every disparity over a ``window`` (width, height) box.
 
     Borders are reflected (OpenCV ``BORDER_REFLECT_101``). Implemented with OpenCV's separable
     running-sum box filter, all disparities at once (costs are the channels).
@@ -88,7 +90,8 @@ def _box_sum_u16(cost, rw, rh, nchunks):
 
 
 def box_sum_u16(cost: np.ndarray, window: tuple[int, int] = (5, 5)) -> np.ndarray:
-    """Window sum of a uint8 cost volume into uint16 (exact), borders replicated.
+    """
+    Window sum of a uint8 cost volume into uint16 (exact), borders replicated.
 
     The fast path of :func:`box_aggregate` for integer costs (numba, separable running sums).
 

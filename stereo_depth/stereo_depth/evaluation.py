@@ -1,4 +1,5 @@
-"""Middlebury-style evaluation of disparity maps, and the ``evaluate_disparity`` executable.
+"""
+Middlebury-style evaluation of disparity maps, and the ``evaluate_disparity`` executable.
 
 Metrics follow the Middlebury stereo SDK: over the evaluated pixels (ground truth known and
 inside the optional mask), ``bad-t`` is the fraction whose estimate is missing or differs from
@@ -11,8 +12,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
+import sys
 from typing import Optional, Sequence
 
 import numba
@@ -31,7 +32,8 @@ __all__ = [
 def evaluate_disparity(disparity: np.ndarray, truth: np.ndarray,
                        mask: Optional[np.ndarray] = None,
                        thresholds: Sequence[float] = (1.0, 2.0, 4.0)) -> dict:
-    """Middlebury metrics of an estimated disparity map against ground truth.
+    """
+    Middlebury metrics of an estimated disparity map against ground truth.
 
     :param disparity: (H, W) estimate in pixels; NaN, inf or negative values are "missing".
     :param truth: (H, W) ground truth in pixels; non-finite values are "unknown" (not scored).
@@ -91,7 +93,8 @@ def _zbuffer_visible(gt, tol):
 
 
 def nonoccluded_mask(truth: np.ndarray, tolerance: float = 1.0) -> np.ndarray:
-    """Pixels of the left image visible in the right one, from the left ground truth.
+    """
+    Pixels of the left image visible in the right one, from the left ground truth.
 
     Rule (forward warping with a z-buffer): every left pixel ``x`` with known disparity ``d``
     lands at ``xr = x - d`` in the right image and is splatted to the nearest right-image column
@@ -141,7 +144,8 @@ def write_pfm(path: str | Path, image: np.ndarray) -> None:
 
 
 def load_disparity(path: str | Path, scale: float = 1.0) -> np.ndarray:
-    """Load a disparity map from .pfm, .npy or an 8/16-bit image (value / scale; 0 = missing).
+    """
+    Load a disparity map from .pfm, .npy or an 8/16-bit image (value / scale; 0 = missing).
 
     :param path: file name.
     :param scale: divisor for integer image formats (e.g. 16 for OpenCV fixed point, 256 KITTI).

@@ -1,4 +1,5 @@
-"""Step 1 of the four-step stereo pipeline (chapter Sec. 2.1): matching cost computation.
+"""
+Step 1 of the four-step stereo pipeline (chapter Sec. 2.1): matching cost computation.
 
 Every function takes a rectified pair (left/right images of the same shape, epipolar lines are
 image rows) and returns a cost volume ``C`` of shape ``(H, W, D)`` where ``C[y, x, d]`` is the
@@ -14,9 +15,9 @@ absolute difference and quantised ZNCC.
 from __future__ import annotations
 
 import numba
-import numpy as np
 from numba import types
 from numba.extending import intrinsic
+import numpy as np
 
 __all__ = [
     'to_gray',
@@ -30,7 +31,8 @@ __all__ = [
 
 
 def check_pair(left: np.ndarray, right: np.ndarray, max_disparity: int) -> None:
-    """Raise ValueError naming the problem if the pair or the disparity range is unusable.
+    """
+    Raise ValueError naming the problem if the pair or the disparity range is unusable.
 
     :param left: left image, (H, W) or (H, W, 3).
     :param right: right image, same shape as ``left``.
@@ -48,7 +50,8 @@ def check_pair(left: np.ndarray, right: np.ndarray, max_disparity: int) -> None:
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
-    """Return a float32 (H, W) intensity image (ITU-R 601 luma for RGB input, 0..255 scale).
+    """
+    Return a float32 (H, W) intensity image (ITU-R 601 luma for RGB input, 0..255 scale).
 
     :param image: (H, W), (H, W, 1) or (H, W, 3) RGB image of any real dtype.
     """
@@ -83,7 +86,8 @@ def _census_kernel(padded, h, w, hw, hh):
 
 
 def census_transform(image: np.ndarray, window: tuple[int, int] = (9, 7)) -> np.ndarray:
-    """Census transform (Zabih & Woodfill 1994): one bit per neighbour, ``neighbour < centre``.
+    """
+    Census transform (Zabih & Woodfill 1994): one bit per neighbour, ``neighbour < centre``.
 
     Borders are replicated. At most 64 bits: ``window_w * window_h - 1 <= 64``.
 
@@ -130,7 +134,8 @@ def _hamming_volume(cl, cr, ndisp, invalid):
 
 def census_cost(left: np.ndarray, right: np.ndarray, max_disparity: int,
                 window: tuple[int, int] = (9, 7)) -> np.ndarray:
-    """Census matching cost: Hamming distance between census codes of left and right pixels.
+    """
+    Census matching cost: Hamming distance between census codes of left and right pixels.
 
     Robust to gain/offset differences between the cameras; the usual partner of SGM.
 
@@ -201,7 +206,8 @@ def _bt_volume(gl, gr, ndisp, trunc):
 def absolute_difference_cost(left: np.ndarray, right: np.ndarray, max_disparity: int,
                              truncation: float = 255.0,
                              birchfield_tomasi: bool = False) -> np.ndarray:
-    """Absolute intensity difference ``min(|I_L(x, y) - I_R(x - d, y)|, truncation)``.
+    """
+    Absolute intensity difference ``min(|I_L(x, y) - I_R(x - d, y)|, truncation)``.
 
     :param left: left rectified image, (H, W) or (H, W, 3) (colour is converted to luma).
     :param right: right rectified image, same shape.
@@ -220,7 +226,8 @@ def absolute_difference_cost(left: np.ndarray, right: np.ndarray, max_disparity:
 
 def zncc_cost(left: np.ndarray, right: np.ndarray, max_disparity: int,
               window: tuple[int, int] = (7, 7)) -> np.ndarray:
-    """Zero-mean normalised cross-correlation cost ``1 - ZNCC`` over a window, in [0, 2].
+    """
+    Zero-mean normalised cross-correlation cost ``1 - ZNCC`` over a window, in [0, 2].
 
     Window sums use OpenCV box filters (the aggregation is part of the measure here).
     Textureless windows (zero variance) get cost 1 (uncorrelated).
@@ -268,7 +275,8 @@ def zncc_cost(left: np.ndarray, right: np.ndarray, max_disparity: int,
 
 
 def quantize_cost(cost: np.ndarray, scale: float) -> np.ndarray:
-    """Scale a real-valued cost volume to uint8 (``round(cost * scale)`` clipped to 255).
+    """
+    Scale a real-valued cost volume to uint8 (``round(cost * scale)`` clipped to 255).
 
     The integer optimisers (SGM, BP) take uint8 volumes; use this for ZNCC (``scale`` ~ 30).
 

@@ -1,4 +1,5 @@
-"""Step 3 of the four-step stereo pipeline (chapter Sec. 2.1): disparity computation.
+"""
+Step 3 of the four-step stereo pipeline (chapter Sec. 2.1): disparity computation.
 
 Cost volumes are ``(H, W, D)`` arrays, ``C[y, x, d]`` the cost of disparity ``d`` (pixels) at left
 pixel ``(x, y)``. Three optimisers:
@@ -45,7 +46,8 @@ _U16 = np.uint16
 # --------------------------------------------------------------------------------------------
 
 def winner_take_all(cost: np.ndarray) -> np.ndarray:
-    """Lowest-cost disparity per pixel (ties go to the smaller disparity).
+    """
+    Lowest-cost disparity per pixel (ties go to the smaller disparity).
 
     :param cost: (H, W, D) cost volume.
     :return: (H, W) int32 disparities in [0, D-1] (pixels).
@@ -183,7 +185,8 @@ _SCRATCH = threading.local()
 
 
 def _path_sum_buffers(shape: tuple) -> np.ndarray:
-    """(2, H, W, D) uint16 scratch for the two sweeps' path sums, kept per thread.
+    """
+    (2, H, W, D) uint16 scratch for the two sweeps' path sums, kept per thread.
 
     The buffers are tens of MB: allocating them per frame costs a page fault per 4 KiB page
     (several ms per frame), so each thread keeps its last one for the next frame of the same
@@ -219,7 +222,8 @@ _P2_STEPS = ((0, 1), (1, 0), (1, 1), (1, -1))
 
 
 def _adaptive_p2_maps(cost, image, p1, p2, gamma, paths=8):
-    """(4, H, W) uint16 P2 per path step (see _P2_STEPS), or a dummy when gamma == 0.
+    """
+    (4, H, W) uint16 P2 per path step (see _P2_STEPS), or a dummy when gamma == 0.
 
     With 4 paths only the horizontal and vertical maps (types 0 and 1) are filled.
 
@@ -259,7 +263,8 @@ def _adaptive_p2_maps(cost, image, p1, p2, gamma, paths=8):
 def semi_global_matching(cost: np.ndarray, p1: int = 7, p2: int = 100, paths: int = 8,
                          image: Optional[np.ndarray] = None,
                          gamma: float = 0.0) -> np.ndarray:
-    """Aggregate a cost volume along 4 or 8 directions (semi-global matching).
+    """
+    Aggregate a cost volume along 4 or 8 directions (semi-global matching).
 
     :param cost: (H, W, D) uint8 cost volume.
     :param p1: penalty for a disparity change of one pixel between neighbours.
@@ -371,7 +376,8 @@ def _wta_one(cost, uniqueness, big, packed):
 
 def winner_take_all_both(cost: np.ndarray,
                          uniqueness: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Winner-take-all for both views from the left view's cost volume, in one pass.
+    """
+    Winner-take-all for both views from the left view's cost volume, in one pass.
 
     :param cost: (H, W, D) cost volume (uint8, uint16 or float32).
     :param uniqueness: reject (NaN) a pixel whose best cost times ``1 + uniqueness`` exceeds the
@@ -396,7 +402,8 @@ def winner_take_all_both(cost: np.ndarray,
 def sgm_disparities(cost: np.ndarray, p1: int = 7, p2: int = 100, paths: int = 8,
                     uniqueness: float = 0.0, image: Optional[np.ndarray] = None,
                     gamma: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """SGM followed by winner-take-all for both views, fused for speed.
+    """
+    SGM followed by winner-take-all for both views, fused for speed.
 
     :param cost: (H, W, D) uint8 cost volume of the left view.
     :param p1: small-jump penalty.
@@ -540,7 +547,8 @@ def _energy(cost, labels, lam, tau):
 
 def stereo_energy(cost: np.ndarray, labels: np.ndarray, smoothness: float,
                   truncation: float) -> float:
-    """Eq. 1 of the chapter for a labelling on the 4-connected grid.
+    """
+    Eq. 1 of the chapter for a labelling on the 4-connected grid.
 
     ``E(d) = sum_i C1(i, d_i) + sum_{(i, j) neighbours} min(smoothness * |d_i - d_j|,
     truncation)``, each unordered neighbour pair counted once.
@@ -572,7 +580,8 @@ def belief_propagation(cost: np.ndarray, smoothness: float = 1.0, truncation: fl
                        iterations: int = 5, levels: int = 4,
                        callback: Optional[Callable[[int, int, np.ndarray], None]] = None
                        ) -> np.ndarray:
-    """Hierarchical min-sum loopy BP (Felzenszwalb & Huttenlocher 2006) minimising Eq. 1.
+    """
+    Hierarchical min-sum loopy BP (Felzenszwalb & Huttenlocher 2006) minimising Eq. 1.
 
     Messages are computed in O(D) with the truncated-linear distance transform, updated on a
     checkerboard (each iteration updates both colours once), and initialised coarse-to-fine: the
@@ -700,7 +709,8 @@ def census_block_matching(left: np.ndarray, right: np.ndarray, max_disparity: in
                           census_window: tuple[int, int] = (5, 5),
                           window: tuple[int, int] = (7, 7),
                           uniqueness: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """The local method fused for speed: census cost, box aggregation, WTA for both views.
+    """
+    Run the local method fused for speed: census cost, box aggregation, WTA for both views.
 
     Identical to ``winner_take_all_both(box_sum_u16(census_cost(...), window))`` but computed
     row by row, so no (H, W, D) volume is stored.

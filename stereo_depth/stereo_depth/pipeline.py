@@ -1,4 +1,5 @@
-"""The four-step stereo pipeline as named methods, and disparity -> depth -> 3-D points.
+"""
+The four-step stereo pipeline as named methods, and disparity -> depth -> 3-D points.
 
 A *method* turns a rectified pair into a left-view disparity map: (H, W) float32, pixels,
 ``x_right = x_left - d``, NaN where there is no estimate. Methods and their parameters:
@@ -248,7 +249,7 @@ def available_methods() -> list[str]:
 
 
 def method_defaults(method: str) -> dict:
-    """A copy of the default parameters of ``method``."""
+    """Return a copy of the default parameters of ``method``."""
     if method not in METHODS:
         raise ValueError(f"unknown stereo method '{method}'; available: {available_methods()}")
     return dict(METHODS[method].defaults)
@@ -257,7 +258,8 @@ def method_defaults(method: str) -> dict:
 def compute_disparity(left: np.ndarray, right: np.ndarray, method: str = 'sgm',
                       max_disparity: int = 64, min_disparity: int = 0,
                       **params: Any) -> np.ndarray:
-    """Left-view disparity of a rectified pair with a named method.
+    """
+    Left-view disparity of a rectified pair with a named method.
 
     :param left: left rectified image, (H, W) grey or (H, W, 3) RGB.
     :param right: right rectified image, same shape.
@@ -303,7 +305,8 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, method: str = 'sgm',
 
 def disparity_to_depth(disparity: np.ndarray, focal_length: float, baseline: float,
                        doffs: float = 0.0) -> np.ndarray:
-    """Depth along the optical axis ``Z = f B / (d + doffs)`` (metres, NaN where unknown).
+    """
+    Depth along the optical axis ``Z = f B / (d + doffs)`` (metres, NaN where unknown).
 
     :param disparity: (H, W) disparities in pixels.
     :param focal_length: horizontal focal length ``fx`` in pixels (rectified).
@@ -324,7 +327,8 @@ def disparity_to_depth(disparity: np.ndarray, focal_length: float, baseline: flo
 
 def depth_to_points(depth: np.ndarray, fx: float, fy: float, cx: float,
                     cy: float) -> np.ndarray:
-    """Back-project a depth image into the optical frame (z forward, x right, y down).
+    """
+    Back-project a depth image into the optical frame (z forward, x right, y down).
 
     :param depth: (H, W) depth in metres, NaN where unknown.
     :param fx: focal lengths and principal point of the (rectified) camera, pixels.
@@ -349,7 +353,8 @@ def cloud_points(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float,
                  decimation: int = 1, organized: bool = False,
                  colours: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray | None]:
-    """The points of a depth image for a point cloud, every ``decimation``-th pixel.
+    """
+    Select the points of a depth image for a point cloud, every ``decimation``-th pixel.
 
     Pixel (u, v) with ``u % s == 0`` and ``v % s == 0`` (s = ``decimation``) is kept, exactly
     back-projected (no averaging: a mean across a depth edge would invent points between

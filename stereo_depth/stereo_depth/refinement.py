@@ -1,4 +1,5 @@
-"""Step 4 of the four-step stereo pipeline (chapter Sec. 2.1): disparity refinement.
+"""
+Step 4 of the four-step stereo pipeline (chapter Sec. 2.1): disparity refinement.
 
 Disparity maps are (H, W) float32 arrays in pixels of the left image (``x_right = x_left - d``);
 NaN marks a pixel without an estimate. Every function returns a new array.
@@ -40,7 +41,8 @@ def _parabola(disp, cost):
 
 
 def subpixel_refine(disparity: np.ndarray, cost: np.ndarray) -> np.ndarray:
-    """Parabola through the costs at ``d-1, d, d+1``; its vertex is the subpixel disparity.
+    """
+    Parabola through the costs at ``d-1, d, d+1``; its vertex is the subpixel disparity.
 
     :param disparity: (H, W) integer disparities (e.g. from winner-take-all).
     :param cost: the (H, W, D) cost volume that produced them.
@@ -72,7 +74,8 @@ def _right_wta(cost):
 
 
 def right_disparity_from_cost(cost: np.ndarray) -> np.ndarray:
-    """Winner-take-all disparity of the right view from the left view's cost volume.
+    """
+    Winner-take-all disparity of the right view from the left view's cost volume.
 
     The right pixel ``xr`` matched with disparity ``d`` is the left pixel ``xr + d``, so
     ``d_R(xr) = argmin_d C(y, xr + d, d)``.
@@ -103,7 +106,8 @@ def _lr_check(dl, dr, max_diff):
 
 def left_right_check(disp_left: np.ndarray, disp_right: np.ndarray,
                      max_diff: float = 1.0) -> np.ndarray:
-    """Left-right consistency: keep ``d_L(x)`` only if ``|d_R(x - d_L(x)) - d_L(x)| <= max_diff``.
+    """
+    Left-right consistency: keep ``d_L(x)`` only if ``|d_R(x - d_L(x)) - d_L(x)| <= max_diff``.
 
     Removes occluded pixels (visible in the left image only) and most mismatches.
 
@@ -123,7 +127,8 @@ def left_right_check(disp_left: np.ndarray, disp_right: np.ndarray,
 
 def remove_speckles(disparity: np.ndarray, max_size: int = 100,
                     max_diff: float = 1.0) -> np.ndarray:
-    """Invalidate small connected blobs (speckles), as OpenCV's ``filterSpeckles``.
+    """
+    Invalidate small connected blobs (speckles), as OpenCV's ``filterSpeckles``.
 
     Neighbouring pixels belong to one blob when their disparities differ by at most
     ``max_diff``; blobs of at most ``max_size`` pixels become NaN.
@@ -187,7 +192,8 @@ def _nan_median(d, r, full, use_full):
 
 
 def median_filter(disparity: np.ndarray, size: int = 3) -> np.ndarray:
-    """Median over the valid pixels of a ``size x size`` window; NaN pixels stay NaN.
+    """
+    Median over the valid pixels of a ``size x size`` window; NaN pixels stay NaN.
 
     :param disparity: (H, W) disparities (pixels, NaN = none).
     :param size: odd window size >= 1.
@@ -283,7 +289,8 @@ def _fill_directional(d, dirs, rank):
 
 
 def fill_invalid(disparity: np.ndarray, mode: str = 'row', rank: int = 2) -> np.ndarray:
-    """Fill missing pixels with the background disparity.
+    """
+    Fill missing pixels with the background disparity.
 
     ``mode='row'``: each horizontal run of missing pixels lies next to a farther surface, so
     it takes the smaller of the two valid disparities that bound it (the only one at the image

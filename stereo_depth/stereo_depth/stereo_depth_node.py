@@ -1,4 +1,5 @@
-"""``stereo_depth_node``: rectified stereo pairs -> disparity, depth and a point cloud.
+"""
+``stereo_depth_node``: rectified stereo pairs -> disparity, depth and a point cloud.
 
 Subscribes (sensor-data QoS; topic names as ``stereo_image_proc``):
 ``left/image_rect``, ``right/image_rect`` (mono8, 8UC1, mono16, 16UC1, rgb8, bgr8, rgba8, bgra8),
@@ -45,26 +46,25 @@ import time
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, RegionOfInterest
-from stereo_msgs.msg import DisparityImage
-
 from stereo_depth.pipeline import (available_methods, cloud_points, compute_disparity,
                                    disparity_to_depth, method_defaults)
 from stereo_manip_tools.conversions import (CameraInfoError, image_to_numpy, numpy_to_image,
                                             stamp_to_ns, stereo_parameters_from_camera_info,
                                             xyz_to_pointcloud2)
+from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import bool_descriptor, float_descriptor, \
     INPUT_QOS_CHOICES, input_qos_descriptor, input_qos_profile, int_descriptor, \
     reject_nonfinite_parameters, string_descriptor
-from stereo_manip_tools.diagnostics import NodeDiagnostics
-from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
+    spin_until_shutdown
 from stereo_manip_tools.sync import StampSynchronizer
 from stereo_manip_tools.tf import publish_camera_mount
+from stereo_msgs.msg import DisparityImage
 
 __all__ = ['StereoDepthNode', 'prepare_pair', 'stereo_geometry', 'main', 'SUPPORTED_ENCODINGS',
            'ALIASES', 'alias_value', 'select_numba_threads', 'NUMBA_THREADING_LAYERS']
@@ -98,7 +98,8 @@ def _to_matching_image(img: np.ndarray, encoding: str) -> Tuple[np.ndarray, Opti
 
 
 def prepare_pair(left: Image, right: Image) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
-    """Decode and check a left/right image pair.
+    """
+    Decode and check a left/right image pair.
 
     :return: (left, right) arrays for matching and the left RGB colours (None for mono).
     :raises InputError: unsupported/mismatched encodings, or images of different sizes.
@@ -128,7 +129,8 @@ def prepare_pair(left: Image, right: Image) -> Tuple[np.ndarray, np.ndarray, Opt
 
 def stereo_geometry(left_info: Optional[CameraInfo], right_info: Optional[CameraInfo],
                     width: int, height: int) -> Dict[str, float]:
-    """fx, fy, cx, cy, baseline [m] and doffs = cx_r - cx_l [px] from the rectified infos.
+    """
+    fx, fy, cx, cy, baseline [m] and doffs = cx_r - cx_l [px] from the rectified infos.
 
     The infos are parsed by
     :func:`stereo_manip_tools.conversions.stereo_parameters_from_camera_info` (ROS convention:
@@ -165,7 +167,7 @@ _PARAMS = {
         'number of disparity candidates D (min_disparity .. min_disparity + D - 1 pixels)',
         2, 512)),
     'min_disparity': (0, int_descriptor(
-        'smallest disparity searched [px]; set it to the scene\'s nearest-far bound to search '
+        "smallest disparity searched [px]; set it to the scene's nearest-far bound to search "
         'only the band the scene occupies', 0, 1024)),
     'point_decimation': (1, int_descriptor(
         'points2 keeps every n-th pixel in both directions (1 = all; 2 = a quarter of the '
@@ -175,7 +177,7 @@ _PARAMS = {
         '(default: only the valid points, height 1)')),
     'numba_threading_layer': ('workqueue', string_descriptor(
         'numba threading layer of the parallel kernels: workqueue (no spinning threads), omp, '
-        'tbb or default (numba\'s choice)', read_only=True,
+        "tbb or default (numba's choice)", read_only=True,
         additional_constraints='one of workqueue, omp, tbb, default')),
     'numba_threads': (0, int_descriptor(
         'threads of the parallel kernels (0 = one per core)', 0, 256, read_only=True)),
@@ -225,7 +227,8 @@ ALIASES = {
 
 
 def alias_value(alias: str, value: Any) -> Tuple[str, Any]:
-    """(own parameter name, converted value) of a ``stereo_image_proc`` alias.
+    """
+    (own parameter name, converted value) of a ``stereo_image_proc`` alias.
 
     :raises ValueError: the value cannot be converted (e.g. stereo_algorithm 2).
     """
@@ -239,7 +242,8 @@ def alias_value(alias: str, value: Any) -> Tuple[str, Any]:
 
 
 def select_numba_threads(layer: str, threads: int) -> str:
-    """Choose numba's threading layer and thread count before the first parallel kernel.
+    """
+    Choose numba's threading layer and thread count before the first parallel kernel.
 
     :param layer: one of :data:`NUMBA_THREADING_LAYERS` ('default' keeps numba's choice).
     :param threads: threads of the parallel kernels (0 = numba's default, one per core).
@@ -347,7 +351,7 @@ class StereoDepthNode(Node):
             f"{self._params['max_disparity']} disparities from {self._params['min_disparity']}, "
             f"points every {self._params['point_decimation']} px"
             + (' (organised)' if self._params['organized_cloud'] else '')
-            + f", numba {self.numba_layer} layer, sync "
+            + f', numba {self.numba_layer} layer, sync '
             + ('exact' if self._params['sync_tolerance'] == 0
                else f"within {self._params['sync_tolerance']} s"))
 
@@ -433,8 +437,12 @@ class StereoDepthNode(Node):
     # --- processing ----------------------------------------------------------------------------
 
     def _warm_up(self) -> None:
-        """Match one small random pair with the configured method, so numba's compiled kernels
-        are loaded before the first real pair (otherwise that pair is late by seconds)."""
+        """
+        Load numba's compiled kernels by matching one small random pair.
+
+        Match one small random pair with the configured method, so numba's compiled kernels
+        are loaded before the first real pair (otherwise that pair is late by seconds).
+        """
         t0 = time.perf_counter()
         params = dict(self._params)
         ndisp, dmin = int(params['max_disparity']), int(params['min_disparity'])
@@ -579,10 +587,4 @@ class StereoDepthNode(Node):
 def main(args=None):
     rclpy.init(args=args)
     node = create_node_or_exit(StereoDepthNode, 'stereo_depth_node')
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)

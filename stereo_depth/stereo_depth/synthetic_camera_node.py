@@ -1,4 +1,7 @@
-"""``synthetic_camera``: a stereo camera driver that renders built-in scenes (or replays a
+"""
+The ``synthetic_camera`` node: a stereo camera driver that renders built-in scenes.
+
+``synthetic_camera``: a stereo camera driver that renders built-in scenes (or replays a
 still real pair) and publishes it like real hardware, with exact ground truth.
 
 Published topics (all with the same header stamp per frame: the time the pair was rendered,
@@ -31,25 +34,24 @@ import sys
 import time
 from typing import Dict, List, Optional, Tuple
 
+from geometry_msgs.msg import PoseStamped
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import (
     FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult)
+import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Empty, Header
-from stereo_msgs.msg import DisparityImage
-
+from stereo_depth.synthetic import (
+    load_motorcycle, load_stereo_files, RealStereoPair, RenderOptions, SCENES, StereoCamera,
+    SyntheticStereo)
 from stereo_manip_tools.conversions import (
     camera_info_from_parameters, matrix_to_pose_stamped, numpy_to_image,
     StereoCameraParameters)
 from stereo_manip_tools.diagnostics import NodeDiagnostics
-from stereo_depth.synthetic import (
-    load_motorcycle, load_stereo_files, RealStereoPair, RenderOptions, SCENES, StereoCamera,
-    SyntheticStereo)
+from stereo_manip_tools.robustness import spin_until_shutdown
+from stereo_msgs.msg import DisparityImage
 
 __all__ = ['SyntheticCameraNode', 'main', 'SOURCES', 'ENCODINGS', 'PLAYBACKS', 'scene_frame',
            'FrameGrid']
@@ -60,7 +62,8 @@ PLAYBACKS = ('loop', 'bounce')
 
 
 def scene_frame(count: int, n_frames: int, playback: str) -> int:
-    """Scene frame shown at the ``count``-th advanced frame index.
+    """
+    Scene frame shown at the ``count``-th advanced frame index.
 
     ``loop`` returns ``count`` (the scene wraps it around itself); ``bounce`` runs 0, 1, ...,
     n-1, n-2, ..., 1, 0, 1, ... (a triangle wave with period 2 (n - 1)).
@@ -73,7 +76,8 @@ def scene_frame(count: int, n_frames: int, playback: str) -> int:
 
 
 class FrameGrid:
-    """Exposure times of a free-running camera: frame ``k`` is due at ``t0 + k / rate`` [s].
+    """
+    Exposure times of a free-running camera: frame ``k`` is due at ``t0 + k / rate`` [s].
 
     The ROS timer only wakes the camera; which frames are due is decided here, on a steady
     clock. A wake-up that comes more than a period late (a loaded machine: the rcl timer then
@@ -103,7 +107,8 @@ class FrameGrid:
         self.next_index = 0
 
     def due(self, now: float) -> Tuple[int, int]:
-        """Frames to render now and frames dropped (older than the catch-up allows).
+        """
+        Frames to render now and frames dropped (older than the catch-up allows).
 
         :param now: the wake-up time [s] on the grid's steady clock.
         :returns: ``(render, dropped)``; ``render >= 1``: a wake-up always yields a frame.
@@ -471,13 +476,7 @@ def main(args=None):
         print(f'[synthetic_camera] refused to start: {exc}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         sys.exit(2)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_shutdown(node)
 
 
 if __name__ == '__main__':

@@ -1,9 +1,8 @@
 """Pure-core tests of the four-step stereo pipeline on small synthetic cases with known answers."""
 
+from hypothesis import given, settings, strategies as st
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
-
 from stereo_depth.aggregation import box_aggregate, box_sum_u16
 from stereo_depth.evaluation import evaluate_disparity, nonoccluded_mask
 from stereo_depth.matching_cost import (absolute_difference_cost, census_cost, census_transform,
@@ -19,9 +18,13 @@ from stereo_depth.refinement import (fill_invalid, left_right_check, median_filt
 
 
 def layered_pair(h=48, w=96, d_back=4, d_front=12, front=(30, 60), seed=0, noise=0.0):
-    """Random-texture pair: background at ``d_back``, a foreground band of left columns
-    ``front`` at ``d_front``. Returns (left, right, truth, occluded) with the exact occluded
-    band ``[front[0] - (d_front - d_back), front[0])`` of the left view."""
+    """
+    Random-texture pair.
+
+    Background at ``d_back``, a foreground band of left columns ``front`` at ``d_front``. Returns
+    (left, right, truth, occluded) with the exact occluded band ``[front[0] - (d_front - d_back),
+    front[0])`` of the left view.
+    """
     rng = np.random.default_rng(seed)
     back = rng.uniform(0, 255, (h, w + d_front + 1))
     fore = rng.uniform(0, 255, (h, w + d_front + 1))
@@ -131,8 +134,11 @@ def test_box_sum_matches_opencv_and_brute_force():
 # --- step 3: optimisation -------------------------------------------------------------------
 
 def _sgm_reference(cost, p1, p2, directions, image=None, gamma=0.0):
-    """Plain-python SGM path sums (Hirschmueller 2008, Eq. 13); with ``gamma`` > 0 the large-jump
-    penalty of the step q -> p is max(P1, P2 gamma / (gamma + |I(p) - I(q)|)), rounded (Sec. 3.1).
+    """
+    Plain-python SGM path sums (Hirschmueller 2008, Eq. 13).
+
+    With ``gamma`` > 0 the large-jump penalty of the step q -> p is max(P1, P2 gamma / (gamma +
+    |I(p) - I(q)|)), rounded (Sec. 3.1).
     """
     h, w, nd = cost.shape
     c = cost.astype(np.int64)

@@ -9,15 +9,14 @@ from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
-from stereo_msgs.msg import DisparityImage
-
-from stereo_depth.stereo_depth_node import (InputError, prepare_pair, StereoDepthNode,
-                                            stereo_geometry)
+from stereo_depth.stereo_depth_node import (
+    InputError, prepare_pair, stereo_geometry, StereoDepthNode)
 from stereo_manip_tools.conversions import (camera_info_from_parameters, image_to_numpy,
                                             ns_to_stamp, numpy_to_image,
                                             pointcloud2_to_array, stamp_to_ns,
                                             StereoCameraParameters)
 from stereo_manip_tools.testing import spin_until, start_executable
+from stereo_msgs.msg import DisparityImage
 
 FX, BASELINE, SHIFT = 100.0, 0.1, 6
 

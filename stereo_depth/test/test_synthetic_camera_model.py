@@ -1,9 +1,8 @@
 """Pinhole stereo camera model: projections, ROS conventions, non-default cameras."""
 
+from hypothesis import given, settings, strategies as st
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
-
 from stereo_depth.synthetic import render, StereoCamera
 
 

@@ -1,19 +1,22 @@
-"""synthetic_camera node: parameters, synchronized publishing, CameraInfo geometry (in-process
-and as its own process from the install tree)."""
+"""
+synthetic_camera node.
+
+parameters, synchronized publishing, CameraInfo geometry (in-process and as its own process from
+the install tree).
+"""
 
 
 import math
 
+from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
-from stereo_msgs.msg import DisparityImage
-
-from stereo_manip_tools.conversions import image_to_numpy, stereo_parameters_from_camera_info
-from stereo_manip_tools.testing import start_executable, spin_until
 from stereo_depth.synthetic_camera_node import SyntheticCameraNode, validate_parameter
+from stereo_manip_tools.conversions import image_to_numpy, stereo_parameters_from_camera_info
+from stereo_manip_tools.testing import spin_until, start_executable
+from stereo_msgs.msg import DisparityImage
 
 SMALL = [Parameter('width', value=160), Parameter('height', value=120),
          Parameter('fx', value=150.0), Parameter('rate', value=20.0)]
@@ -192,8 +195,12 @@ def test_bounce_playback_is_continuous_and_loop_wraps():
 
 
 def _rcl_wake_ups(clock, period, seconds, wake):
-    """Call ``wake()`` as the rcl timer does (a period missed by more than a period is skipped)
-    on a simulated clock ``clock['t']`` that ``wake`` advances by its rendering cost."""
+    """
+    Call ``wake()`` as the rcl timer does, on a simulated clock.
+
+    Call ``wake()`` as the rcl timer does (a period missed by more than a period is skipped)
+    on a simulated clock ``clock['t']`` that ``wake`` advances by its rendering cost.
+    """
     t_end = clock['t'] + seconds
     next_call = clock['t']
     while clock['t'] < t_end:
@@ -241,9 +248,13 @@ def test_frame_grid_holds_the_rate_when_wake_ups_come_late():
 
 @pytest.mark.ros
 def test_free_running_node_publishes_every_period_or_counts_the_drop(ros_node):
-    """The node on a simulated clock, wakes as the rcl timer gives them: when rendering now and
-    then takes longer than the period the camera still publishes one frame per period, and
-    when it falls too far behind the frames it could not render are counted, not lost."""
+    """
+    The node on a simulated clock, wakes as the rcl timer gives them.
+
+    When rendering now and then takes longer than the period the camera still publishes one frame
+    per period, and when it falls too far behind the frames it could not render are counted, not
+    lost.
+    """
     cam = SyntheticCameraNode(context=ros_node.context, parameter_overrides=[
         p for p in SMALL if p.name != 'rate'] + [Parameter('rate', value=10.0)])
     try:

@@ -1,14 +1,17 @@
-"""Geometry acceptance of the synthetic stereo camera: exact correspondences, disparity,
-occlusion, and agreement with an independent ray caster (Open3D)."""
+"""
+Geometry acceptance of the synthetic stereo camera.
+
+Exact correspondences, disparity, occlusion, and agreement with an independent ray caster (Open3D).
+"""
 
 import numpy as np
 import open3d as o3d
 import pytest
-
+from stereo_depth.synthetic import (
+    look_at, make_scene, render, RenderOptions, reprojection_errors, SCENES, StereoCamera,
+    StereoRenderer)
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import invert_transform, make_transform, rotation_about_axis
-from stereo_depth.synthetic import (
-    look_at, make_scene, render, RenderOptions, SCENES, StereoCamera, StereoRenderer)
 
 FRAMES = [('peg_in_hole', 10), ('peg_in_hole', 60), ('peg_in_hole', 100),
           ('peg_in_hole', 150), ('peg_in_hole', 200), ('peg_in_slot', 100),
@@ -16,48 +19,10 @@ FRAMES = [('peg_in_hole', 10), ('peg_in_hole', 60), ('peg_in_hole', 100),
           ('primitives', 45)]
 
 
-def _reprojection_errors(truth, n=400, seed=0):
-    """Distance [px] between the projection into the right camera of the back-projected left
-    depth and the right-image location whose texture coordinates equal the left pixel's."""
-    cam = truth['camera']
-    K, P_r = cam['K'], cam['P_right']
-    H, W = truth['depth'].shape
-    ok = truth['valid'] & ~truth['occlusion']
-    vs, us = np.nonzero(ok)
-    rng = np.random.default_rng(seed)
-    pick = rng.permutation(len(us))
-    errs = []
-    for i in pick:
-        u, v = us[i], vs[i]
-        Z = float(truth['depth'][v, u])
-        X = Z * np.linalg.solve(K, [u, v, 1.0])
-        x = P_r @ np.append(X, 1.0)
-        ur, vr = x[0] / x[2], x[1] / x[2]
-        u0, v0 = int(np.floor(ur)), int(round(vr))
-        cols, rows = np.arange(u0 - 1, u0 + 3), np.arange(v0 - 1, v0 + 2)
-        if cols[0] < 0 or cols[-1] >= W or rows[0] < 0 or rows[-1] >= H:
-            continue
-        oid = truth['object_id_right'][np.ix_(rows, cols)]
-        fid = truth['face_id_right'][np.ix_(rows, cols)]
-        if np.any(oid != truth['object_id'][v, u]) or np.any(fid != truth['face_id'][v, u]):
-            continue  # the neighbourhood crosses a face boundary: no local affine model
-        # Texture coordinates are a smooth (projective) function of the pixel on a face: fit
-        # it locally and solve for the right pixel carrying the left pixel's coordinates.
-        gu, gv = np.meshgrid(cols, rows)
-        A = np.column_stack([gu.ravel(), gv.ravel(), np.ones(gu.size)])
-        tc = truth['texcoords_right'][np.ix_(rows, cols)].reshape(-1, 2).astype(np.float64)
-        coef, *_ = np.linalg.lstsq(A, tc, rcond=None)
-        q = np.linalg.solve(coef[:2].T, truth['texcoords'][v, u].astype(np.float64) - coef[2])
-        errs.append(np.hypot(q[0] - ur, q[1] - vr))
-        if len(errs) >= n:
-            break
-    return np.array(errs)
-
-
 @pytest.mark.parametrize('scene,frame', FRAMES)
 def test_left_depth_reprojects_onto_same_surface_point_in_right(scene, frame):
     _, _, truth = render(scene, frame, seed=7)
-    errs = _reprojection_errors(truth)
+    errs = reprojection_errors(truth)
     assert len(errs) >= 200, f'only {len(errs)} testable pixels'
     assert errs.max() < 0.05, f'max reprojection error {errs.max():.4f} px'
 
@@ -70,7 +35,7 @@ def test_reprojection_check_detects_a_wrong_baseline():
     cam['P_right'] = cam['P_right'].copy()
     cam['P_right'][0, 3] *= 1.01
     bad['camera'] = cam
-    assert _reprojection_errors(bad).max() > 0.2
+    assert reprojection_errors(bad).max() > 0.2
 
 
 @pytest.mark.parametrize('scene', SCENES)
@@ -113,8 +78,12 @@ def _ray_box_hit(origins, dirs, lo, hi):
 
 
 def test_occlusion_mask_matches_analytic_box_occluder():
-    """A cube floating in front of a wall: a wall point is occluded iff the segment from it
-    to the right optical centre enters the cube (computed here analytically)."""
+    """
+    A cube floating in front of a wall.
+
+    a wall point is occluded iff the segment from it to the right optical centre enters the cube
+    (computed here analytically).
+    """
     cam = StereoCamera.create(width=320, height=240, fx=300.0, baseline=0.1)
     table, cube = load_obj(find_model('table')), load_obj(find_model('cube'))
     r = StereoRenderer(cam, [table, cube], seed=3)
@@ -243,8 +212,12 @@ def test_look_at_gives_optical_frame():
 
 @pytest.mark.parametrize('scene', ['peg_in_hole', 'primitives', 'revolute_pair'])
 def test_cached_static_layer_gives_identical_output(scene):
-    """Rendering the static objects once and reusing them changes nothing, also when the
-    static poses change between calls (the cache is keyed by the exact poses)."""
+    """
+    Rendering the static objects once and reusing them changes nothing.
+
+    Rendering the static objects once and reusing them changes nothing, also when the
+    static poses change between calls (the cache is keyed by the exact poses).
+    """
     s = make_scene(scene, seed=2)
     cam = StereoCamera.create(width=320, height=240, fx=300.0)
     meshes = [load_obj(find_model(n)) for n in s.objects]

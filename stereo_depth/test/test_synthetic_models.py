@@ -2,10 +2,9 @@
 
 import numpy as np
 import pytest
-
-from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_depth.synthetic.make_models import (
     build_models, check_closed_manifold, MODEL_NAMES, PRIMITIVES, write_models)
+from stereo_manip_tools.mesh_io import find_model, load_obj
 
 
 def _volume(mesh):

@@ -1,12 +1,15 @@
-"""Scene trajectories: contact phases are geometrically true, nothing interpenetrates, and the
-joint pairs obey their joint constraints exactly."""
+"""
+Scene trajectories.
+
+Contact phases are geometrically true, nothing interpenetrates, and the joint pairs obey their
+joint constraints exactly.
+"""
 
 import numpy as np
 import pytest
-
+from stereo_depth.synthetic import make_scene, SCENES
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import invert_transform, is_rotation_matrix
-from stereo_depth.synthetic import make_scene, SCENES
 
 
 def _peg_samples():

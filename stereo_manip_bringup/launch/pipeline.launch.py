@@ -1,4 +1,7 @@
-"""Launch the stereo_manip graph on a ROS 2 Jazzy install (``ros2 launch`` is not on PyPI; in
+"""
+Launch the stereo_manip graph on a ROS 2 Jazzy install.
+
+Launch the stereo_manip graph on a ROS 2 Jazzy install (``ros2 launch`` is not on PyPI; in
 this repository's own environment use ``scripts/ros2run stereo_manip_bringup demo``).
 
     ros2 launch stereo_manip_bringup pipeline.launch.py scene:=peg_in_hole

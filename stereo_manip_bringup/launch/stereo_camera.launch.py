@@ -1,8 +1,9 @@
-"""Launch stereo_manip on a real stereo camera (ROS 2 Jazzy install; no synthetic scene).
+r"""
+Launch stereo_manip on a real stereo camera (ROS 2 Jazzy install; no synthetic scene).
 
-    ros2 launch stereo_manip_bringup stereo_camera.launch.py \\
+    ros2 launch stereo_manip_bringup stereo_camera.launch.py \
         camera_namespace:=/stereo params_file:=/path/to/my_stereo_camera.yaml
-    ros2 launch stereo_manip_bringup stereo_camera.launch.py namespace:=cell_1 \\
+    ros2 launch stereo_manip_bringup stereo_camera.launch.py namespace:=cell_1 \
         use_contact:=true use_joint:=false
 
 The camera driver (started separately: it owns the hardware) publishes rectified images and
@@ -59,9 +60,9 @@ def _nodes(context):
     link_a = joint.get('link_a_frame', 'link_a')
     link_b = joint.get('link_b_frame', 'link_b')
     multihost = LaunchConfiguration('multihost').perform(context).lower() == 'true'
-    common = dict(namespace=LaunchConfiguration('namespace'), parameters=[params_file],
-                  additional_env=multihost_environment() if multihost else {},
-                  output='screen')
+    common = {'namespace': LaunchConfiguration('namespace'), 'parameters': [params_file],
+              'additional_env': multihost_environment() if multihost else {},
+              'output': 'screen'}
     return [
         Node(package='stereo_depth', executable='stereo_depth_node', name='stereo_depth_node',
              remappings=[(f'{side}/{topic}', f'{camera}/{side}/{topic}')

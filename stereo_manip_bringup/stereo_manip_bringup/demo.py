@@ -1,4 +1,5 @@
-"""``demo``: the stereo_manip pipeline on the built-in synthetic scenes, scored against truth.
+"""
+``demo``: the stereo_manip pipeline on the built-in synthetic scenes, scored against truth.
 
 Every stage is a live ROS graph of separate processes (what ``ros2 launch
 stereo_manip_bringup pipeline.launch.py`` starts on a ROS install), fed by the synthetic stereo
@@ -95,8 +96,12 @@ class Stage:
 
 
 def _camera(scene: str, frame_step: int = 1) -> NodeSpec:
-    """The synthetic camera in software-trigger mode: one frame per trigger, so every frame
-    passes through the whole graph however slow this machine is."""
+    """
+    Run the synthetic camera in software-trigger mode.
+
+    One frame per trigger, so every frame passes through the whole graph however slow this machine
+    is.
+    """
     return NodeSpec('stereo_depth', 'synthetic_camera', 'synthetic_camera',
                     {'scene': scene, 'trigger': True, 'frame_step': frame_step,
                      'publish_depth': False, 'publish_disparity': False},
@@ -119,9 +124,13 @@ SCENE_DISPARITY_BANDS: Dict[str, Tuple[int, int]] = {
 
 
 def _stereo(scene: str) -> NodeSpec:
-    """The stereo node searching only the scene's disparity band, publishing a cloud of every
+    """
+    Make the stereo node of the demo.
+
+    The stereo node searching only the scene's disparity band, publishing a cloud of every
     2nd pixel in both directions (a quarter of the points: the localiser voxelises at 3 mm,
-    coarser than the 2-pixel spacing of ~1.5 mm at 0.45 m)."""
+    coarser than the 2-pixel spacing of ~1.5 mm at 0.45 m).
+    """
     dmin, count = SCENE_DISPARITY_BANDS[scene]
     return NodeSpec('stereo_depth', 'stereo_depth_node', 'stereo_depth_node',
                     {'method': 'block_matching', 'min_disparity': dmin, 'max_disparity': count,
@@ -129,8 +138,12 @@ def _stereo(scene: str) -> NodeSpec:
 
 
 def _localizer(scene: str, models: Sequence[str], static: Sequence[str] = ()) -> NodeSpec:
-    """The localiser, started from the objects' poses at the scene's first frame (the track is
-    initialised once, as a robot would from its task set-up; afterwards it is pure tracking)."""
+    """
+    Make the localiser of the demo.
+
+    The localiser, started from the objects' poses at the scene's first frame (the track is
+    initialised once, as a robot would from its task set-up; afterwards it is pure tracking).
+    """
     from stereo_depth.synthetic import make_scene
     from stereo_manip_tools.transforms import quaternion_from_matrix
     poses = make_scene(scene).poses(0)
@@ -156,7 +169,7 @@ _GOOD_STATES = (1, 3)
 
 
 def _by_stamp(records: List[Tuple[int, Any]]) -> Dict[int, Any]:
-    return {stamp: msg for stamp, msg in records}
+    return dict(records)
 
 
 def _pose(msg: Any) -> np.ndarray:
@@ -187,9 +200,11 @@ def spread(values: Sequence[float], scale: float = 1.0) -> Dict[str, float]:
 def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
                        window: Optional[Tuple[int, int]] = None,
                        pose_topic: Optional[str] = None) -> Dict[str, Any]:
-    """Every camera frame of one object: its published pose's ADD-S against truth [m], or why
-    there is none; a published pose beyond :data:`WRONG_POSE_M` whose TrackStatus (if any) does
-    not flag it is *wrong and unflagged*.
+    """
+    Every camera frame of one object.
+
+    Its published pose's ADD-S against truth [m], or why there is none; a published pose beyond
+    :data:`WRONG_POSE_M` whose TrackStatus (if any) does not flag it is *wrong and unflagged*.
 
     :param window: (first, last) stamps [ns] of the frames scored (None: all).
     :returns: ``frames`` rows (stamp, add_s_m or None, state, flagged) and the counts.
@@ -226,9 +241,13 @@ def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
 
 
 def _peg_phases() -> Tuple[np.ndarray, List[str]]:
-    """Relative peg poses (block frame) of every scene frame and its phase name, from the
+    """
+    Relative peg poses (block frame) and phase names of the scene frames.
+
+    Relative peg poses (block frame) of every scene frame and its phase name, from the
     scene's truth: approach (no contact yet), sliding (on the block's top face, over the hole),
-    inserting (going down the hole), inserted (at the bottom)."""
+    inserting (going down the hole), inserted (at the bottom).
+    """
     from stereo_depth.synthetic import make_scene
     scene = make_scene('peg_in_hole')
     rel, names = [], []
@@ -259,9 +278,13 @@ def _phase_of(rel_true: np.ndarray, table: Tuple[np.ndarray, List[str]]) -> str:
 
 def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
                       window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
-    """Every object's published poses against truth (lost / flagged / wrong frames counted),
+    """
+    Score every object's published poses against truth.
+
+    Every object's published poses against truth (lost / flagged / wrong frames counted),
     and the peg's ADD-S before and after contact correction, in the camera frame and relative
-    to the localised hole block, per contact phase."""
+    to the localised hole block, per contact phase.
+    """
     from object_localizer.evaluation import add_s
     from stereo_manip_tools.transforms import invert_transform
     out: Dict[str, Any] = {'poses': {n: score_object_poses(data, n, window)
@@ -326,8 +349,7 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
 
 def _line_errors(axis_est: np.ndarray, point_est: np.ndarray, axis_true: np.ndarray,
                  point_true: np.ndarray) -> Tuple[float, float]:
-    """Angle [deg] between two lines and distance [m] of the true point from the estimated line.
-    """
+    """Angle [deg] between two lines and distance [m] of the true point from the estimated line."""
     a = axis_est / np.linalg.norm(axis_est)
     b = axis_true / np.linalg.norm(axis_true)
     angle = float(np.degrees(np.arccos(np.clip(abs(a @ b), 0.0, 1.0))))
@@ -337,8 +359,11 @@ def _line_errors(axis_est: np.ndarray, point_est: np.ndarray, axis_true: np.ndar
 
 def score_revolute_pair(data: Dict[str, List[Tuple[int, Any]]], stage: Stage,
                         window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
-    """Both links' poses against truth; joint type and axis line of the newest estimate vs the
-    scene's true joint."""
+    """
+    Both links' poses against truth.
+
+    Joint type and axis line of the newest estimate vs the scene's true joint.
+    """
     from stereo_depth.synthetic import make_scene
     from stereo_manip_tools.conversions import point_to_numpy, stamp_to_ns, vector3_to_numpy
     estimates = data['/joint_estimate']
@@ -376,8 +401,11 @@ def score_revolute_pair(data: Dict[str, List[Tuple[int, Any]]], stage: Stage,
 
 def score_primitives(data: Dict[str, List[Tuple[int, Any]]], stage: Stage,
                      window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
-    """The objects' poses against truth; degree and RMS distance of each object's newest
-    implicit polynomial."""
+    """
+    Score the objects' poses against truth.
+
+    Degree and RMS distance of each object's newest implicit polynomial.
+    """
     out: Dict[str, Any] = {}
     for name in ('cube', 'torus'):
         fits = data[f'/objects/{name}/implicit_polynomial']
@@ -467,7 +495,8 @@ STAGES: Dict[str, Callable[[], Stage]] = {
 def run_stage(stage: Stage, frame_timeout: float = 20.0,
               log: Callable[[str], None] = print
               ) -> Tuple[Dict[str, List[Tuple[int, Any]]], Dict[str, Any]]:
-    """Start the stage's graph, drive the camera, record the stage's topics, stop the graph.
+    """
+    Start the stage's graph, drive the camera, record the stage's topics, stop the graph.
 
     Triggered stages (``live_seconds == 0``): ``stage.frames`` camera frames one after another
     (the next when the graph's last output for the previous one arrived, or after
@@ -594,8 +623,12 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
 
 def live_figures(receipts: Dict[str, List[Tuple[int, int]]], window: Tuple[int, int],
                  camera_topic: str, topics: Sequence[str]) -> Dict[str, Any]:
-    """Rate [Hz], latency (receipt - stamp) [ms] median/p95/max and frames missing of each
-    topic, over the camera frames stamped inside ``window``."""
+    """
+    Rate, latency and missing frames of each topic.
+
+    Rate [Hz], latency (receipt - stamp) [ms] median/p95/max and frames missing of each
+    topic, over the camera frames stamped inside ``window``.
+    """
     camera = sorted({s for s, _ in receipts.get(camera_topic, [])
                      if window[0] <= s <= window[1]})
     cam = set(camera)
@@ -614,9 +647,13 @@ def live_figures(receipts: Dict[str, List[Tuple[int, int]]], window: Tuple[int, 
 
 
 def _figure(stage: str, result: Dict[str, Any], path: Path) -> Optional[Path]:
-    """Per object: the ADD-S error of every frame against time on a log axis, the error
-    threshold, and every frame without a pose as a red mark at the bottom (so a loss is
-    visible however short); peg stages add the corrected peg and shade the contact phases."""
+    """
+    Plot the ADD-S error of every frame of each object.
+
+    Per object: the ADD-S error of every frame against time on a log axis, the error threshold, and
+    every frame without a pose as a red mark at the bottom (so a loss is visible however short);
+    peg stages add the corrected peg and shade the contact phases.
+    """
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -670,7 +707,7 @@ def _figure(stage: str, result: Dict[str, Any], path: Path) -> Optional[Path]:
             hi = t[k] + (t[k + 1] - t[k]) / 2 if k + 1 < len(rows) else t[k]
             ax2.axvspan(lo, hi, color=shade[r['phase']], lw=0, zorder=0)
         ax2.set_ylabel('peg ADD-S relative to block [mm]')
-        ax2.set_title('peg in the hole block\'s frame; shading: approach (white), sliding '
+        ax2.set_title("peg in the hole block's frame; shading: approach (white), sliding "
                       '(blue), inserting (orange), inserted (green)', fontsize=8)
         ax2.legend(fontsize=7)
         ax2.set_xlabel('time [s]')
@@ -726,7 +763,7 @@ def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
                 f"block: localised {_fmt(ph['relative_add_s_observed_mm'])}; after correction "
                 f"{_fmt(ph['relative_add_s_corrected_mm'])}")
         lines.append(f"max penetration observed {result['max_penetration_observed_mm']:.2f} "
-                     f"mm; max contact residual after correction "
+                     f'mm; max contact residual after correction '
                      f"{result['max_contact_residual_after_mm']:.4f} mm; rotation ranks seen "
                      f"{result['rotation_ranks_seen']}")
     elif name == 'revolute_pair':
@@ -739,7 +776,7 @@ def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
                       f"axis direction error {result['final_axis_error_deg']:.2f} deg, axis "
                       f"line distance {result['final_axis_line_distance_mm']:.2f} mm"]
     else:
-        lines += [f"{obj}: " + (f"degree {r['degree']}, RMS distance {r['rms_distance_mm']:.2f}"
+        lines += [f'{obj}: ' + (f"degree {r['degree']}, RMS distance {r['rms_distance_mm']:.2f}"
                                 f" mm over {r['points']} points" if r.get('fits') else 'no fit')
                   for obj, r in result['objects'].items()]
     live = result.get('live')
@@ -750,7 +787,7 @@ def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
             if isinstance(v, dict):
                 lines.append(f"{topic}: {v['rate_hz']:.2f} Hz, latency "
                              f"{_fmt(v['latency_ms'], 'ms', 1)}, {v['frames_missing']} "
-                             f"frames missing")
+                             f'frames missing')
     return lines
 
 
@@ -763,13 +800,17 @@ def _stage_ok(name: str, result: Dict[str, Any]) -> bool:
 
 
 def unflagged_wrong_poses(result: Dict[str, Any]) -> int:
-    """Published poses beyond the error threshold that no TrackStatus flagged."""
+    """Find published poses beyond the error threshold that no TrackStatus flagged."""
     return sum(p['wrong_unflagged'] for p in (result.get('poses') or {}).values())
 
 
 def main(args: Optional[Sequence[str]] = None) -> int:
-    """Run the demo stages; returns 0 when every stage produced a scored result and no stage
-    published a wrong pose (ADD-S > 5 mm) without flagging it."""
+    """
+    Run the demo stages.
+
+    Returns 0 when every stage produced a scored result and no stage published a wrong pose (ADD-S
+    > 5 mm) without flagging it.
+    """
     parser = argparse.ArgumentParser(prog='demo', description=__doc__.split('\n\n')[0])
     parser.add_argument('--out', default='demo_output', help='report directory')
     parser.add_argument('--frames', type=float, default=1.0,
@@ -787,11 +828,11 @@ def main(args: Optional[Sequence[str]] = None) -> int:
     report: Dict[str, Any] = {'stages': {}, 'wrong_pose_threshold_mm': WRONG_POSE_M * 1000}
     md = ['# stereo_manip demo report', '',
           'Synthetic scenes through a live graph of separate processes, scored against the '
-          'synthetic camera\'s exact ground truth. Triggered stages publish one frame at a time '
+          "synthetic camera's exact ground truth. Triggered stages publish one frame at a time "
           '(every frame crosses the whole graph); `peg_in_hole_live` runs the camera free at 10 '
           'Hz, so frames the graph cannot keep up with are lost and counted. A published pose '
           f'more than {WRONG_POSE_M * 1000:.0f} mm (ADD-S) from the truth is *wrong*; the demo '
-          'fails if one is not flagged by the localiser\'s TrackStatus.', '']
+          "fails if one is not flagged by the localiser's TrackStatus.", '']
     ok = True
     t_demo = time.monotonic()
     for name in opts.stages:

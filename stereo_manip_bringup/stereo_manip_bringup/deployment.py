@@ -1,4 +1,5 @@
-"""How the stereo_manip graph is configured when its nodes run on several machines.
+"""
+How the stereo_manip graph is configured when its nodes run on several machines.
 
 One place for the multi-host settings, used by the launch files (``multihost:=true``), by
 :mod:`stereo_manip_bringup.multihost` (the test and the benchmark of the split) and printed by
@@ -27,7 +28,8 @@ RECEIVE_BUFFER_BYTES = 4194304      # the profile's receiveBufferSize; net.core.
 
 
 def multihost_profile_path() -> Path:
-    """The shipped Fast DDS profile: the installed share directory's, else the source tree's.
+    """
+    Find the shipped Fast DDS profile: the installed share directory's, else the source tree's.
 
     :raises FileNotFoundError: neither exists (a broken install).
     """
@@ -51,7 +53,8 @@ def multihost_profile_path() -> Path:
 
 
 def multihost_environment(domain_id: Optional[int] = None) -> Dict[str, str]:
-    """Environment variables every participant of a multi-host cell gets.
+    """
+    Environment variables every participant of a multi-host cell gets.
 
     :param domain_id: also set ``ROS_DOMAIN_ID`` (one id per cell, the same on every machine).
     """
@@ -63,7 +66,8 @@ def multihost_environment(domain_id: Optional[int] = None) -> Dict[str, str]:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Print the ``export`` lines of :func:`multihost_environment` for a shell.
+    """
+    Print the ``export`` lines of :func:`multihost_environment` for a shell.
 
     Use: ``eval "$(python -m stereo_manip_bringup.deployment)"``.
     """

@@ -1,4 +1,5 @@
-"""The peg_in_hole graph split over several machines, simulated with network namespaces.
+"""
+The peg_in_hole graph split over several machines, simulated with network namespaces.
 
 A real cell has the stereo camera on one computer, perception on another and the robot
 controller on a third. :func:`run_graph` starts the demo's nodes (the same
@@ -33,6 +34,7 @@ import numpy as np
 
 from stereo_manip_bringup.demo import NodeSpec, STAGES
 from stereo_manip_bringup.deployment import multihost_environment
+from stereo_manip_tools.processes import process_cpu_seconds
 
 __all__ = ['HOSTS', 'peg_in_hole_placement', 'run_graph', 'summarise', 'GraphRun',
            'CORRECTED_TOPIC', 'TRUTH_TOPIC', 'ros_environment', 'DDS_CHOICES']
@@ -45,7 +47,10 @@ TRUTH_TOPIC = '/objects/peg/pose_truth'
 def peg_in_hole_placement(camera_rate: float, stereo_on_camera: bool = False,
                           stereo_parameters: Optional[Dict[str, Any]] = None,
                           frame_step: Optional[int] = None) -> Dict[str, List[NodeSpec]]:
-    """The demo's peg_in_hole nodes placed on hosts, the camera free-running at
+    """
+    Place the demo's peg_in_hole nodes on hosts.
+
+    The demo's peg_in_hole nodes placed on hosts, the camera free-running at
     ``camera_rate`` [Hz], playing the scene at its own speed (30 fps nominal) back and forth
     from its first frame (where the localiser is initialised), as the live demo stage does.
 
@@ -87,10 +92,13 @@ DDS_CHOICES = ('multihost_profile', 'fastdds_defaults')
 
 def ros_environment(domain_id: int, over_lan: bool,
                     dds: str = 'multihost_profile') -> Dict[str, str]:
-    """Environment of every participant: one domain; over the simulated LAN the multi-host
-    environment a user gets (``dds='multihost_profile'``) or Fast DDS's defaults over UDPv4
-    (``'fastdds_defaults'``, SUBNET discovery); on one host localhost discovery and Fast DDS
-    defaults (shared memory)."""
+    """
+    Environment of every participant.
+
+    One domain; over the simulated LAN the multi-host environment a user gets
+    (``dds='multihost_profile'``) or Fast DDS's defaults over UDPv4 (``'fastdds_defaults'``, SUBNET
+    discovery); on one host localhost discovery and Fast DDS defaults (shared memory).
+    """
     if dds not in DDS_CHOICES:
         raise ValueError(f'dds must be one of {DDS_CHOICES}, got {dds!r}')
     env = dict(os.environ)
@@ -135,8 +143,11 @@ class _Proc:
 
 
 def _stop_all(procs: List[_Proc], run: GraphRun) -> None:
-    """Stop every process (SIGINT, SIGKILL after 10 s), also when interrupted half-way: a
-    second Ctrl-C or an error while stopping one must not leave the others running."""
+    """
+    Stop every process (SIGINT, SIGKILL after 10 s), also when interrupted half-way.
+
+    a second Ctrl-C or an error while stopping one must not leave the others running.
+    """
     try:
         for p in reversed(procs):
             run.exit_codes[p.name] = p.stop()
@@ -151,22 +162,16 @@ def _stop_all(procs: List[_Proc], run: GraphRun) -> None:
                     pass
 
 
-def _cpu_seconds(pid: int) -> float:
-    """utime + stime [s] of a running process (NaN once it has gone)."""
-    try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    except OSError:
-        return float('nan')
-    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
-
-
 def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: int,
               lan: Any = None, controller_host: str = 'controller',
               ready_timeout: float = 120.0, log_dir: Optional[Path] = None,
               log: Any = print, stop_after_corrected: int = 0,
               extra_env: Optional[Dict[str, Optional[str]]] = None,
               dds: str = 'multihost_profile') -> GraphRun:
-    """Start the graph, then the camera when every perception subscription is matched, listen
+    """
+    Start the graph, then the camera; listen on the controller; stop everything.
+
+    Start the graph, then the camera when every perception subscription is matched, listen
     ``duration`` s on the controller, stop everything (SIGINT, then SIGKILL).
 
     :param placement: host -> nodes (from :func:`peg_in_hole_placement`).
@@ -237,7 +242,7 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
                            {**env, **getattr(spec, 'env', {})}, log_dir)
             procs.append(camera)
         t_end = time.monotonic() + duration
-        cpu0 = {p.name: _cpu_seconds(p.popen.pid) for p in procs}
+        cpu0 = {p.name: process_cpu_seconds(p.popen.pid) for p in procs}
         t_cpu0 = time.monotonic()
         next_sample = time.monotonic()
         while time.monotonic() < t_end:
@@ -255,7 +260,7 @@ def run_graph(placement: Dict[str, List[NodeSpec]], duration: float, domain_id: 
             time.sleep(0.1)
         run.end_wall_ns = time.time_ns()
         elapsed = time.monotonic() - t_cpu0
-        run.cpu_fraction = {p.name: (_cpu_seconds(p.popen.pid) - cpu0.get(p.name, 0.0))
+        run.cpu_fraction = {p.name: (process_cpu_seconds(p.popen.pid) - cpu0.get(p.name, 0.0))
                             / elapsed for p in procs}
         if lan is not None:
             run.counters = {h: {**lan.counters(h), **lan.ip_stats(h)} for h in lan.hosts}
@@ -287,7 +292,10 @@ def _stats(values: Sequence[float]) -> Dict[str, float]:
 
 def summarise(run: GraphRun, warmup: float = 5.0,
               model_points: Optional[np.ndarray] = None) -> Dict[str, Any]:
-    """Pose figures over the window from ``warmup`` s after the first corrected pose to the
+    """
+    Summarise the pose, camera and link figures of a run.
+
+    Pose figures over the window from ``warmup`` s after the first corrected pose to the
     end of the run; camera and link figures from ``warmup`` s after the camera started.
 
     :returns: corrected poses in the window, their rate [Hz] over arrival times, latency

@@ -1,4 +1,5 @@
-"""The peg_in_hole graph as separate processes with the camera free-running at 10 Hz.
+"""
+The peg_in_hole graph as separate processes with the camera free-running at 10 Hz.
 
 Loose bounds, stable on a loaded CI machine: the benchmark (bench/pipeline_realtime.py) holds
 the real goals (>= 10 Hz, <= 100 ms p90). What must hold anywhere: the graph keeps running,

@@ -1,4 +1,5 @@
-"""rosbag2 reading and writing on ``rosbags`` (no rosbag2 install needed), shared by every tool.
+"""
+rosbag2 reading and writing on ``rosbags`` (no rosbag2 install needed), shared by every tool.
 
 Bags are written in rosbag2 format (mcap storage by default, Jazzy's default; sqlite3 on
 request), so ``ros2 bag play`` replays them on a real ROS install. Messages are kept as the CDR
@@ -32,7 +33,8 @@ class BagError(RuntimeError):
 
 
 def get_message_class(type_name: str) -> Any:
-    """Python class of a ROS interface type such as ``sensor_msgs/msg/Image``.
+    """
+    Python class of a ROS interface type such as ``sensor_msgs/msg/Image``.
 
     :raises BagError: malformed name or the interface package is not installed.
     """
@@ -58,7 +60,7 @@ def _share_msg_files(package: str) -> List[Path]:
 
 
 def make_typestore(extra_packages: Sequence[str] = ('stereo_manip_msgs',)) -> Any:
-    """The ROS 2 Jazzy type store plus every message of ``extra_packages`` (from share/*/msg)."""
+    """Make the ROS 2 Jazzy type store plus every message of ``extra_packages`` (share/*/msg)."""
     from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
     store = get_typestore(Stores.ROS2_JAZZY)
@@ -119,9 +121,12 @@ class BagWriter:
         self.counts[topic] += 1
 
     def flush(self) -> None:
-        """Make everything written so far durable against the process being killed: mcap
-        closes the pending chunk (a complete, indexed record) and flushes the file; sqlite3
-        commits. A bag cut off after a flush is readable up to it (see :func:`read_bag`)."""
+        """
+        Make everything written so far durable against the process being killed.
+
+        Mcap closes the pending chunk (a complete, indexed record) and flushes the file; sqlite3
+        commits. A bag cut off after a flush is readable up to it (see :func:`read_bag`).
+        """
         storage = getattr(self._writer, 'storage', None)
         if storage is None:
             return
@@ -160,9 +165,12 @@ def _mcap_records(buf: bytes, pos: int, end: int) -> Iterator[Tuple[int, bytes]]
 
 
 def salvage_mcap(path: os.PathLike | str) -> Iterator[BagMessage]:
-    """Messages of an mcap file that was never closed (writer killed): every complete,
-    uncompressed chunk and top-level message record up to where the file was cut, in file
-    order (the recorder writes in receive order)."""
+    """
+    Messages of an mcap file that was never closed (writer killed).
+
+    Every complete, uncompressed chunk and top-level message record up to where the file was cut,
+    in file order (the recorder writes in receive order).
+    """
     buf = Path(path).read_bytes()
     if not buf.startswith(b'\x89MCAP'):
         raise BagError(f'{path} is not an mcap file')
@@ -211,7 +219,7 @@ def _salvage_sqlite(path: Path) -> Iterator[BagMessage]:
 
 
 def _unfinished_storage(path: Path) -> Optional[Path]:
-    """The single storage file of a bag directory without metadata.yaml, if any."""
+    """Find the single storage file of a bag directory without metadata.yaml, if any."""
     if not path.is_dir() or (path / 'metadata.yaml').exists():
         return None
     files = sorted(path.glob('*.mcap')) + sorted(path.glob('*.db3'))
@@ -236,7 +244,8 @@ def _open_reader(path: os.PathLike | str) -> Any:
 
 def read_bag(path: os.PathLike | str, topics: Optional[Sequence[str]] = None
              ) -> Iterator[BagMessage]:
-    """Messages of a bag in time order, optionally only ``topics``.
+    """
+    Messages of a bag in time order, optionally only ``topics``.
 
     A bag whose recorder was killed (no metadata.yaml) is salvaged: every message up to the
     last complete mcap chunk (sqlite3: the last commit) is read.
@@ -270,8 +279,11 @@ def read_bag(path: os.PathLike | str, topics: Optional[Sequence[str]] = None
 
 
 def bag_summary(path: os.PathLike | str) -> Tuple[Dict[str, Tuple[str, int]], int, int]:
-    """``({topic: (type, count)}, first_ns, last_ns)``: per-topic counts, first/last stamps
-    (of the salvaged messages for a bag that was never closed)."""
+    """
+    ``({topic: (type, count)}, first_ns, last_ns)``.
+
+    per-topic counts, first/last stamps (of the salvaged messages for a bag that was never closed).
+    """
     if _unfinished_storage(Path(path)) is not None:
         out: Dict[str, Tuple[str, int]] = {}
         stamps = []

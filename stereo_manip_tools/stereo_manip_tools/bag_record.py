@@ -1,4 +1,5 @@
-"""``record``: record chosen topics of a live graph to a rosbag2 bag (mcap or sqlite3).
+"""
+``record``: record chosen topics of a live graph to a rosbag2 bag (mcap or sqlite3).
 
 Usage::
 
@@ -24,10 +25,9 @@ from typing import Dict, List, Optional, Sequence
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
-from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-
+from rclpy.signals import SignalHandlerOptions
 from stereo_manip_tools.bag_io import BagError, BagWriter, get_message_class
 
 __all__ = ['BagRecorder', 'main']
@@ -154,8 +154,12 @@ def main(args: Optional[Sequence[str]] = None) -> int:
 
 
 def _drain(node: Node, recorder: BagRecorder, quiet: float, limit: float = 10.0) -> int:
-    """Take what is queued (and still arriving) until ``quiet`` [s] pass without a message or
-    ``limit`` [s] in all; returns the number of messages taken."""
+    """
+    Take what is queued until no message comes for ``quiet`` [s].
+
+    Take what is queued (and still arriving) until ``quiet`` [s] pass without a message or
+    ``limit`` [s] in all; returns the number of messages taken.
+    """
     before = recorder.total
     t0 = last = time.monotonic()
     seen = recorder.total

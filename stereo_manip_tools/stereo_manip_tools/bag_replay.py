@@ -1,4 +1,5 @@
-"""``replay``: publish a rosbag2 bag's messages onto their topics with the original timing.
+"""
+``replay``: publish a rosbag2 bag's messages onto their topics with the original timing.
 
 Usage::
 

@@ -1,4 +1,5 @@
-"""The one writer of benchmark results: ``bench/results/<name>.json`` with honest goals.
+"""
+The one writer of benchmark results: ``bench/results/<name>.json`` with honest goals.
 
 Every benchmark builds its goals with :func:`goal` (``met`` is computed from the measured
 value, never typed in) and writes them with :func:`write_report`, which adds machine facts.
@@ -27,7 +28,8 @@ _COMPARE = {
 
 
 def goal(metric: str, target: float, comparison: str, value: float) -> Dict[str, Any]:
-    """One goal entry; ``met`` is ``value <comparison> target`` (False for NaN values).
+    """
+    One goal entry; ``met`` is ``value <comparison> target`` (False for NaN values).
 
     :param metric: what is measured, with its unit (e.g. ``'bad2_ratio_vs_sgbm'``).
     :param target: the goal's threshold.
@@ -69,7 +71,8 @@ def _machine() -> Dict[str, Any]:
 
 def write_report(name: str, goals: List[Dict[str, Any]], *, directory: Optional[Path] = None,
                  **raw: Any) -> Path:
-    """Write ``<directory>/<name>.json`` with goals, raw figures and machine facts; print a table.
+    """
+    Write ``<directory>/<name>.json`` with goals, raw figures and machine facts; print a table.
 
     :param name: benchmark name, starting with its component (``stereo_middlebury``).
     :param goals: entries made by :func:`goal`.

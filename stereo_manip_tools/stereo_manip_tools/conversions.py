@@ -1,4 +1,5 @@
-"""Conversions between ROS messages and numpy arrays, shared by every node (no rclpy needed).
+"""
+Conversions between ROS messages and numpy arrays, shared by every node (no rclpy needed).
 
 Images (``sensor_msgs/Image``) <-> ``(H, W)`` or ``(H, W, C)`` arrays; point clouds
 (``sensor_msgs/PointCloud2``) <-> ``(N, k)`` float arrays; poses (``geometry_msgs/Pose``,
@@ -89,7 +90,8 @@ def ns_to_stamp(ns: int) -> Time:
 # --- images -------------------------------------------------------------------------------
 
 def image_to_numpy(msg: Image) -> np.ndarray:
-    """Decode a ``sensor_msgs/Image`` to an array of shape (H, W) or (H, W, C), copied.
+    """
+    Decode a ``sensor_msgs/Image`` to an array of shape (H, W) or (H, W, C), copied.
 
     Row padding (``step``) and byte order are honoured; channel order is kept as encoded.
 
@@ -115,7 +117,8 @@ def image_to_numpy(msg: Image) -> np.ndarray:
 
 
 def numpy_to_image(array: np.ndarray, encoding: str, header: Optional[Header] = None) -> Image:
-    """Encode an array of shape (H, W) or (H, W, C) as a ``sensor_msgs/Image``.
+    """
+    Encode an array of shape (H, W) or (H, W, C) as a ``sensor_msgs/Image``.
 
     :raises ValueError: encoding unknown or not matching the array's dtype/channels.
     """
@@ -144,7 +147,8 @@ def numpy_to_image(array: np.ndarray, encoding: str, header: Optional[Header] = 
 # --- point clouds -------------------------------------------------------------------------
 
 class PointCloudError(ValueError):
-    """A ``PointCloud2`` whose layout cannot be read safely.
+    """
+    A ``PointCloud2`` whose layout cannot be read safely.
 
     ``reason`` names the problem for counters: ``'bad_layout'`` (point_step 0, row_step too
     small, size overflow), ``'truncated'`` (data shorter than the layout declares),
@@ -166,7 +170,8 @@ DEFAULT_MAX_ABS_COORDINATE = 1.0e4
 
 @dataclass
 class PointCloudReading:
-    """What :func:`read_pointcloud2` read from one cloud, with the counts of what it dropped.
+    """
+    What :func:`read_pointcloud2` read from one cloud, with the counts of what it dropped.
 
     :ivar points: shape (N, k) float64, the requested fields (rgb as three columns r, g, b).
     :ivar declared: points the message declared (``width * height``).
@@ -240,9 +245,13 @@ def _checked_layout(msg: PointCloud2, fields: Sequence[str]) -> Tuple[int, int, 
 
 def _voxel_downsample(points: np.ndarray, max_points: int, voxel_size: float
                       ) -> Tuple[np.ndarray, float]:
-    """Centroids of occupied voxels of the first three columns, the voxel grown (as for a
+    """
+    Down-sample a cloud to at most ``max_points`` voxel centroids.
+
+    Centroids of occupied voxels of the first three columns, the voxel grown (as for a
     surface, by the square root of the excess) until at most ``max_points`` remain; a
-    deterministic stride thins what a few growth steps leave above the cap."""
+    deterministic stride thins what a few growth steps leave above the cap.
+    """
     xyz = points[:, :3]
     lo = xyz.min(axis=0)
     extent = float(np.max(xyz.max(axis=0) - lo))
@@ -271,8 +280,10 @@ def read_pointcloud2(msg: PointCloud2, fields: Sequence[str] = ('x', 'y', 'z'), 
                      max_points: Optional[int] = None,
                      voxel_size: float = 0.0, keep_rows: bool = False,
                      dtype: Any = np.float64) -> PointCloudReading:
-    """The hardened ``PointCloud2`` reader every node uses: checked layout, counted drops,
-    bounded size.
+    """
+    Read a ``PointCloud2`` with the hardened reader every node uses.
+
+    Checked layout, counted drops, bounded size.
 
     Checks ``point_step`` (> 0), ``row_step`` (honoured: organised clouds may pad rows), every
     requested field's datatype (1-8) and that it lies inside ``point_step``, duplicate names,
@@ -357,7 +368,8 @@ def read_pointcloud2(msg: PointCloud2, fields: Sequence[str] = ('x', 'y', 'z'), 
 
 def pointcloud2_to_array(msg: PointCloud2, fields: Sequence[str] = ('x', 'y', 'z'), *,
                          skip_nans: bool = True) -> np.ndarray:
-    """Read the named fields of a ``PointCloud2`` into a float64 array of shape (N, len(fields)).
+    """
+    Read the named fields of a ``PointCloud2`` into a float64 array of shape (N, len(fields)).
 
     :func:`read_pointcloud2` without the counts: same checks; with ``skip_nans`` rows with a
     non-finite or out-of-bounds x/y/z are dropped.
@@ -370,7 +382,8 @@ def pointcloud2_to_array(msg: PointCloud2, fields: Sequence[str] = ('x', 'y', 'z
 def xyz_to_pointcloud2(points: np.ndarray, header: Optional[Header] = None, *,
                        rgb: Optional[np.ndarray] = None,
                        normals: Optional[np.ndarray] = None) -> PointCloud2:
-    """Build an unorganised ``PointCloud2`` (float32 x, y, z [m]; optional packed rgb, normals).
+    """
+    Build an unorganised ``PointCloud2`` (float32 x, y, z [m]; optional packed rgb, normals).
 
     :param points: shape (N, 3), metres, in ``header.frame_id``.
     :param rgb: shape (N, 3) uint8-range colours, packed into a float32 ``rgb`` field.
@@ -441,7 +454,8 @@ def _quat(q: Quaternion) -> np.ndarray:
 
 
 def pose_to_matrix(pose: Pose) -> np.ndarray:
-    """``geometry_msgs/Pose`` to a 4x4 transform (child -> parent).
+    """
+    ``geometry_msgs/Pose`` to a 4x4 transform (child -> parent).
 
     :raises ValueError: zero or non-finite quaternion, non-finite position, or a position
         beyond ``DEFAULT_MAX_ABS_COORDINATE`` (10 km: not a measurement, e.g. 1e30).
@@ -490,7 +504,8 @@ def matrix_to_pose_stamped(T: np.ndarray, header: Header) -> PoseStamped:
 
 
 def pose_stamped_to_transform_stamped(msg: PoseStamped, child_frame: str) -> TransformStamped:
-    """``PoseStamped`` of a frame to the TF transform ``msg.header.frame_id -> child_frame``.
+    """
+    ``PoseStamped`` of a frame to the TF transform ``msg.header.frame_id -> child_frame``.
 
     The pose of ``child_frame`` in the header's frame is the transform that maps child
     coordinates into the parent (tf2 convention); stamp and parent frame are the header's. The
@@ -504,7 +519,8 @@ def pose_stamped_to_transform_stamped(msg: PoseStamped, child_frame: str) -> Tra
 
 
 def transform_stamped_to_matrix(msg: TransformStamped) -> Tuple[np.ndarray, int, str, str]:
-    """``TransformStamped`` to ``(T 4x4 child -> parent, stamp_ns, parent frame, child frame)``.
+    """
+    ``TransformStamped`` to ``(T 4x4 child -> parent, stamp_ns, parent frame, child frame)``.
 
     :raises ValueError: zero or non-finite quaternion, non-finite translation.
     """
@@ -523,7 +539,7 @@ def path_to_matrices(path: Path) -> Tuple[np.ndarray, np.ndarray]:
 
 def matrices_to_path(Ts: np.ndarray, frame_id: str, stamps_ns: Optional[Sequence[int]] = None
                      ) -> Path:
-    """Transforms of shape (N, 4, 4) to a ``nav_msgs/Path``; stamps default to 0..N-1 ns."""
+    """Convert transforms of shape (N, 4, 4) to a ``nav_msgs/Path``; stamps default 0..N-1 ns."""
     Ts = np.asarray(Ts, dtype=float).reshape(-1, 4, 4)
     stamps = list(stamps_ns) if stamps_ns is not None else list(range(len(Ts)))
     if len(stamps) != len(Ts):
@@ -541,7 +557,8 @@ def matrices_to_path(Ts: np.ndarray, frame_id: str, stamps_ns: Optional[Sequence
 
 @dataclass(frozen=True)
 class StereoCameraParameters:
-    """Rectified stereo geometry read from a left/right ``CameraInfo`` pair.
+    """
+    Rectified stereo geometry read from a left/right ``CameraInfo`` pair.
 
     :ivar fx, fy, cx, cy: left projection intrinsics [px].
     :ivar baseline: distance between the optical centres [m] (> 0).
@@ -570,7 +587,8 @@ class StereoCameraParameters:
 
 
 class CameraInfoError(ValueError):
-    """A rectified pair's ``CameraInfo`` that gives no usable stereo geometry.
+    """
+    A rectified pair's ``CameraInfo`` that gives no usable stereo geometry.
 
     ``reason`` names the problem for counters: ``'bad_camera_info'`` (focal length not set or
     not finite), ``'zero_baseline'`` (baseline not positive) or ``'size_mismatch'``.
@@ -583,7 +601,8 @@ class CameraInfoError(ValueError):
 
 def stereo_parameters_from_camera_info(left: CameraInfo, right: CameraInfo
                                        ) -> StereoCameraParameters:
-    """Stereo geometry from a rectified pair's ``CameraInfo`` (ROS convention P_r[3] = -fx*B).
+    """
+    Stereo geometry from a rectified pair's ``CameraInfo`` (ROS convention P_r[3] = -fx*B).
 
     Depth is ``Z = fx B / (d + doffs)`` with ``doffs = cx_r - cx_l`` [px].
 

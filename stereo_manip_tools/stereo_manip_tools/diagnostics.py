@@ -1,4 +1,5 @@
-"""``/diagnostics`` for stereo_manip nodes, in the manner of ``diagnostic_updater``.
+"""
+``/diagnostics`` for stereo_manip nodes, in the manner of ``diagnostic_updater``.
 
 ``diagnostic_updater`` is not on PyPI; this module is the part of it the nodes need, publishing
 ``diagnostic_msgs/DiagnosticArray`` on ``/diagnostics`` (what ``diagnostic_aggregator``,
@@ -94,7 +95,7 @@ class DiagnosticStatusWrapper:
         self.values.append((str(key), str(value)))
 
     def to_msg(self) -> DiagnosticStatus:
-        """The ``diagnostic_msgs/DiagnosticStatus`` (level as the message's byte)."""
+        """Return the ``diagnostic_msgs/DiagnosticStatus`` (level as the message's byte)."""
         return DiagnosticStatus(level=bytes([self.level]), name=self.name,
                                 message=self.message or LEVEL_NAMES[self.level],
                                 hardware_id=self.hardware_id,
@@ -106,7 +107,8 @@ Counters = Union[Mapping[str, int], Callable[[], Mapping[str, int]]]
 
 
 class Updater:
-    """``diagnostic_updater.Updater``: runs the tasks every ``period`` s and publishes them.
+    """
+    ``diagnostic_updater.Updater``: runs the tasks every ``period`` s and publishes them.
 
     A task that raises is reported as ERROR with the exception text (the node keeps running).
     """
@@ -157,7 +159,8 @@ class Updater:
 
 
 class TopicStatus:
-    """Rate and stamp age of one topic (published or received), for a diagnostic task.
+    """
+    Rate and stamp age of one topic (published or received), for a diagnostic task.
 
     :param min_rate: below it (Hz, over the last period) the status is WARN; 0: never.
     :param max_age: stamp age [s] whose p95 over the period above it is WARN; 0: never.
@@ -178,8 +181,12 @@ class TopicStatus:
         self.last_tick_ns: Optional[int] = None
 
     def tick(self, stamp: Optional[Time] = None, now_ns: Optional[int] = None) -> None:
-        """One message. ``stamp``: its header stamp; ``now_ns``: the node clock's now [ns]
-        (both needed for the age; without them only the rate is measured)."""
+        """
+        One message.
+
+        ``stamp``: its header stamp; ``now_ns``: the node clock's now [ns] (both needed for the
+        age; without them only the rate is measured).
+        """
         self.count += 1
         self._period_count += 1
         self.last_tick_ns = self._clock()
@@ -216,7 +223,8 @@ class TopicStatus:
 
 
 class NodeDiagnostics(Updater):
-    """The diagnostics hook of a stereo_manip node.
+    """
+    The diagnostics hook of a stereo_manip node.
 
     Tasks: ``counters`` (every entry of ``counters``, read at each period; WARN while a counter
     whose name matches ``warn_pattern`` grew during the period), ``topics`` (one
@@ -244,10 +252,14 @@ class NodeDiagnostics(Updater):
             self.follow_all()
 
     def follow(self, entity: Union[Publisher, Subscription], name: str = '') -> None:
-        """Tick ``name`` (default: the topic name) for every message ``entity`` -- a publisher or
+        """
+        Tick ``name`` for every message ``entity`` publishes or receives.
+
+        Tick ``name`` (default: the topic name) for every message ``entity`` -- a publisher or
         subscription of this node -- publishes or receives (by wrapping ``publish`` or the
         callback). A published ``TrackStatus`` (fields ``object_name``, ``state``, ``reason``)
-        also sets that object's track state."""
+        also sets that object's track state.
+        """
         if not isinstance(entity, (Publisher, Subscription)):
             raise TypeError(f'cannot follow a {type(entity).__name__}')
         name = name or entity.topic_name.lstrip('/')
@@ -269,7 +281,11 @@ class NodeDiagnostics(Updater):
             entity.callback = tick_and_call
 
     def follow_all(self, exclude: Sequence[str] = INFRASTRUCTURE_TOPICS) -> None:
-        """:meth:`follow` every publisher and subscription the node has now (topic names)."""
+        """
+        Follow every publisher and subscription the node has now.
+
+        :meth:`follow` every publisher and subscription the node has now (topic names).
+        """
         for entity in list(self.node.publishers) + list(self.node.subscriptions):
             if entity.topic_name not in exclude and id(entity) not in self._followed:
                 self.follow(entity)
@@ -289,7 +305,7 @@ class NodeDiagnostics(Updater):
                                  **values, **({'reason': reason} if reason else {}))
 
     def topic(self, name: str, min_rate: float = 0.0, max_age: float = 0.0) -> TopicStatus:
-        """The monitor of ``name`` (created on first use)."""
+        """Return the monitor of ``name`` (created on first use)."""
         if name not in self.topics:
             self.topics[name] = TopicStatus(name, min_rate, max_age)
         return self.topics[name]
@@ -300,9 +316,13 @@ class NodeDiagnostics(Updater):
         self.topic(name).tick(stamp, now_ns)
 
     def set_track_state(self, name: str, state: str, level: int = OK, **values: Any) -> None:
-        """Record the track state of object ``name`` (shown by the ``tracks`` task, which is
+        """
+        Record the track state of object ``name``.
+
+        Record the track state of object ``name`` (shown by the ``tracks`` task, which is
         registered on first use): e.g. ``('peg', 'TRACKING', OK, quality=0.93)`` or
-        ``('peg', 'LOST', WARN, reason='inlier fraction 0.2 < 0.5')``."""
+        ``('peg', 'LOST', WARN, reason='inlier fraction 0.2 < 0.5')``.
+        """
         if 'tracks' not in self.tasks:
             self.add('tracks', self._tracks_task)
         self._tracks[name] = (state, int(level), values, self._clock_ns())

@@ -1,4 +1,5 @@
-"""Opening files named by parameters or requests: regular files only (no rclpy needed).
+"""
+Opening files named by parameters or requests: regular files only (no rclpy needed).
 
 A path parameter that names a FIFO, a device or a directory would block a node's callback on
 ``open`` (a FIFO waits for a writer) or read without end (``/dev/zero``). These helpers check
@@ -32,7 +33,8 @@ def _kind(mode: int) -> str:
 
 def check_regular_file(path: os.PathLike | str, what: str = 'file',
                        max_bytes: Optional[int] = None) -> Path:
-    """``path`` as a Path if it is a regular file (symlinks followed), of at most ``max_bytes``.
+    """
+    ``path`` as a Path if it is a regular file (symlinks followed), of at most ``max_bytes``.
 
     For libraries that open the path themselves (e.g. Open3D's mesh readers).
 
@@ -53,7 +55,8 @@ def check_regular_file(path: os.PathLike | str, what: str = 'file',
 
 def open_regular_file(path: os.PathLike | str, what: str = 'file', *, binary: bool = False,
                       encoding: str = 'utf-8', max_bytes: Optional[int] = None) -> IO:
-    """Open ``path`` for reading only if it is a regular file; never blocks on a FIFO.
+    """
+    Open ``path`` for reading only if it is a regular file; never blocks on a FIFO.
 
     :raises FileNotFoundError: nothing at ``path``.
     :raises NotARegularFileError: a FIFO, device, socket or directory, or a file too large.

@@ -1,4 +1,5 @@
-"""Malformed-message fuzzing of nodes running as their own processes (tests and benchmarks).
+"""
+Malformed-message fuzzing of nodes running as their own processes (tests and benchmarks).
 
 - hypothesis strategies for malformed ``PointCloud2``, ``PoseStamped``, ``Image`` and
   ``CameraInfo`` messages: broken layouts (point_step 0, offsets beyond point_step, datatypes 0
@@ -58,7 +59,8 @@ def _floats():
 
 
 def malformed_pointcloud2(max_points: int = 3000):
-    """PointCloud2 messages that are wrong in layout or content (never a clean object cloud).
+    """
+    PointCloud2 messages that are wrong in layout or content (never a clean object cloud).
 
     :param max_points: largest cloud of the content variants (bounds the campaign's time).
     """
@@ -118,24 +120,24 @@ def malformed_pointcloud2(max_points: int = 3000):
         rng = np.random.default_rng(seed)
         P = rng.random((50, 3)) * 0.1 + [0, 0, 0.5]
         changes = {
-            'point_step_0': dict(point_step=0),
-            'point_step_1': dict(point_step=1),
-            'offset_beyond': dict(fields=xyz_fields[:2] + [PointField(
-                name='z', offset=200, datatype=7, count=1)]),
-            'datatype_0': dict(fields=[PointField(name='x', offset=0, datatype=0, count=1)]
-                               + xyz_fields[1:]),
-            'datatype_99': dict(fields=[PointField(name='x', offset=0, datatype=99, count=1)]
-                                + xyz_fields[1:]),
-            'big_endian': dict(is_bigendian=True),
-            'declared_larger': dict(width=10**6),
-            'declared_huge': dict(width=2**31, height=2**31 - 1),
-            'row_step_small': dict(height=5, width=10, row_step=3),
-            'no_fields': dict(fields=[]),
-            'duplicate_field': dict(fields=xyz_fields + [xyz_fields[0]]),
-            'float64_declared': dict(fields=[PointField(name=n, offset=8 * i, datatype=8,
-                                                        count=1) for i, n in enumerate('xyz')]),
-            'empty': dict(width=0, data=b''),
-            'height_0': dict(height=0),
+            'point_step_0': {'point_step': 0},
+            'point_step_1': {'point_step': 1},
+            'offset_beyond': {'fields': xyz_fields[:2] + [PointField(
+                name='z', offset=200, datatype=7, count=1)]},
+            'datatype_0': {'fields': [PointField(name='x', offset=0, datatype=0, count=1)]
+                           + xyz_fields[1:]},
+            'datatype_99': {'fields': [PointField(name='x', offset=0, datatype=99, count=1)]
+                            + xyz_fields[1:]},
+            'big_endian': {'is_bigendian': True},
+            'declared_larger': {'width': 10**6},
+            'declared_huge': {'width': 2**31, 'height': 2**31 - 1},
+            'row_step_small': {'height': 5, 'width': 10, 'row_step': 3},
+            'no_fields': {'fields': []},
+            'duplicate_field': {'fields': xyz_fields + [xyz_fields[0]]},
+            'float64_declared': {'fields': [PointField(name=n, offset=8 * i, datatype=8,
+                                                       count=1) for i, n in enumerate('xyz')]},
+            'empty': {'width': 0, 'data': b''},
+            'height_0': {'height': 0},
         }[how]
         return cloud(P, header, **changes)
     broken_st = st.builds(broken, _header(), st.sampled_from(
@@ -146,7 +148,7 @@ def malformed_pointcloud2(max_points: int = 3000):
 
 
 def malformed_pose_stamped():
-    """PoseStamped with NaN/inf/huge positions, zero/NaN/non-unit quaternions, odd stamps."""
+    """Draw PoseStamped with NaN/inf/huge positions, zero/NaN/non-unit quaternions, odd stamps."""
     st = _st()
     from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion
 
@@ -187,7 +189,7 @@ def malformed_image(encodings: Sequence[str] = ('mono8', 'mono16', 'rgb8', 'bgra
 
 
 def malformed_camera_info():
-    """CameraInfo with zero/NaN/negative projections, odd sizes and distortion lengths."""
+    """Draw CameraInfo with zero/NaN/negative projections, odd sizes and distortion lengths."""
     st = _st()
     from sensor_msgs.msg import CameraInfo
 
@@ -206,7 +208,8 @@ def malformed_camera_info():
 
 @dataclass
 class FuzzTarget:
-    """A node under fuzzing.
+    """
+    A node under fuzzing.
 
     :ivar inputs: topic -> (message class, strategy of malformed messages; a strategy may
         also give ``(topic, msg)`` lists, e.g. a stereo pair with one stamp).
@@ -295,9 +298,12 @@ class FuzzSession:
 
     def run_cycle(self, burst: Sequence[Tuple[str, Any]],
                   timeout: Optional[float] = None) -> CycleResult:
-        """Publish ``burst`` (paced), then cycle ``k``'s good messages; wait (``timeout`` [s],
-        default the target's) for the checked output. A node that died is restarted (and
-        counted)."""
+        """
+        Publish ``burst`` (paced), then cycle ``k``'s good messages.
+
+        Wait (``timeout`` [s], default the target's) for the checked output. A node that died is
+        restarted (and counted).
+        """
         from stereo_manip_tools.processes import spin_until
 
         k = self.cycle
@@ -346,7 +352,7 @@ class FuzzSession:
 
 
 def burst_strategy(target: FuzzTarget, min_size: int = 1, max_size: int = 10):
-    """Lists of ``(topic, msg)`` drawn from the target's malformed-message strategies."""
+    """Draw lists of ``(topic, msg)`` from the target's malformed-message strategies."""
     st = _st()
     if target.burst_strategy is not None:
         return target.burst_strategy

@@ -1,4 +1,5 @@
-"""Polygon mesh I/O: the one loader every package uses for object models (pure numpy).
+"""
+Polygon mesh I/O: the one loader every package uses for object models (pure numpy).
 
 Object models ship as Wavefront OBJ files in metres with polygon faces preserved (a box has six
 quadrilateral faces, not twelve triangles), installed by the data package
@@ -24,7 +25,8 @@ MODEL_PACKAGE = 'stereo_manip_models'
 
 @dataclass
 class PolygonMesh:
-    """A polygon mesh.
+    """
+    A polygon mesh.
 
     :ivar vertices: vertex positions [m], shape (N, 3), float64.
     :ivar faces: one int array of vertex indices per face, counter-clockwise from outside.
@@ -51,7 +53,7 @@ class PolygonMesh:
         return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
 
     def face_normals(self) -> np.ndarray:
-        """Unit outward normal of each face (Newell's method), shape (F, 3)."""
+        """Compute the unit outward normal of each face (Newell's method), shape (F, 3)."""
         normals = np.zeros((len(self.faces), 3))
         for i, f in enumerate(self.faces):
             p = self.vertices[f]
@@ -72,7 +74,8 @@ class PolygonMesh:
 
 
 def load_obj(path: os.PathLike | str) -> PolygonMesh:
-    """Read a Wavefront OBJ file (``v`` and ``f`` records; ``f a/b/c`` forms accepted).
+    """
+    Read a Wavefront OBJ file (``v`` and ``f`` records; ``f a/b/c`` forms accepted).
 
     Negative (relative) indices are resolved; texture and normal records are ignored.
 
@@ -134,7 +137,8 @@ def _model_dirs() -> Sequence[Path]:
 
 
 def find_model(name: str, directories: Optional[Sequence[Path]] = None) -> Path:
-    """Path of the shipped model ``<name>.obj``.
+    """
+    Path of the shipped model ``<name>.obj``.
 
     Looks in ``$STEREO_MANIP_MODEL_PATH``, then ``share/stereo_manip_models/models`` of the
     installed package, then the source tree.

@@ -1,4 +1,5 @@
-"""Several simulated machines on one Linux host: network namespaces on a virtual Ethernet LAN.
+"""
+Several simulated machines on one Linux host: network namespaces on a virtual Ethernet LAN.
 
 Each *host* is a network namespace with its own loopback and one Ethernet interface ``eth0``
 (a TAP device). A small switch process (:func:`relay_main`, started by :class:`VirtualLan`)
@@ -77,7 +78,8 @@ def list_namespaces() -> List[str]:
 
 
 def netns_unavailable_reason() -> Optional[str]:
-    """Why simulated hosts cannot be made here, or None when they can.
+    """
+    Why simulated hosts cannot be made here, or None when they can.
 
     Checks root, ``ip``/``tc`` and ``/dev/net/tun``, then builds (and deletes) a one-host LAN
     with a ``tbf`` qdisc, because containers often refuse a part of it.
@@ -102,7 +104,8 @@ def netns_unavailable_reason() -> Optional[str]:
 
 
 class VirtualLan:
-    """Hosts (network namespaces) on one simulated Ethernet segment, every link shaped alike.
+    """
+    Hosts (network namespaces) on one simulated Ethernet segment, every link shaped alike.
 
     :param hosts: host names (letters, digits, ``_``); host ``k`` gets address ``.k+1``.
     :param rate_bit_s: each host's link rate [bit/s] (kernel ``tbf`` on its egress); None =
@@ -157,7 +160,10 @@ class VirtualLan:
     # --- life cycle ------------------------------------------------------------------------
 
     def create(self) -> 'VirtualLan':
-        """Create the host namespaces, start the switch (which makes each host's ``eth0``),
+        """
+        Create the host namespaces, the switch, addresses, route and rate limit.
+
+        Create the host namespaces, start the switch (which makes each host's ``eth0``),
         then set addresses, multicast route and the rate limit.
 
         On failure everything created so far is removed before the error propagates.
@@ -205,7 +211,8 @@ class VirtualLan:
         return self
 
     def _add_static_neighbours(self) -> None:
-        """Give every host a permanent ARP entry for every other host.
+        """
+        Give every host a permanent ARP entry for every other host.
 
         The switch drops a ``loss`` fraction of *all* frames, ARP included; a lost ARP request
         makes the kernel wait ``retrans_time`` (1 s) before asking again and hold the unicast
@@ -228,7 +235,8 @@ class VirtualLan:
                           'nud', 'permanent'])
 
     def destroy(self) -> List[str]:
-        """Stop the switch and delete the namespaces this object created (by name).
+        """
+        Stop the switch and delete the namespaces this object created (by name).
 
         Safe to call twice. Returns the names that could not be deleted (normally none).
         """
@@ -266,8 +274,12 @@ class VirtualLan:
     # --- use -------------------------------------------------------------------------------
 
     def command(self, host: str, argv: Sequence[str]) -> List[str]:
-        """``argv`` prefixed to run inside ``host`` (``ip netns exec`` execs ``argv``, so the
-        process id is the command's own and signals reach it directly)."""
+        """
+        ``argv`` prefixed to run inside ``host``.
+
+        ``argv`` prefixed to run inside ``host`` (``ip netns exec`` execs ``argv``, so the
+        process id is the command's own and signals reach it directly).
+        """
         return ['ip', 'netns', 'exec', self.namespaces[host], *argv]
 
     def counters(self, host: str) -> Dict[str, int]:
@@ -280,8 +292,8 @@ class VirtualLan:
                 'tx_dropped': tx_d}
 
     def ip_stats(self, host: str) -> Dict[str, int]:
-        """``host``'s IP reassembly and UDP counters and the memory its incomplete fragments
-        hold now.
+        """
+        ``host``'s IP reassembly and UDP counters and the memory its incomplete fragments hold now.
 
         From ``/proc/net/snmp``: ``Reasm*`` (ReasmReqds, ReasmOKs, ReasmFails) and ``Udp*``
         (e.g. ``UdpRcvbufErrors``: datagrams dropped because a socket's receive buffer was
@@ -308,9 +320,13 @@ class VirtualLan:
                      'dev', 'eth0'])
 
     def switch_stats(self) -> Optional[Dict[str, Any]]:
-        """The switch's figures (per host: frames/bytes sent, dropped by ``loss``; delivery
+        """
+        Return the switch's figures.
+
+        The switch's figures (per host: frames/bytes sent, dropped by ``loss``; delivery
         lateness beyond ``delay_s`` p50/p90/max; its CPU time): live while it runs (it
-        rewrites them every second), final after :meth:`destroy`."""
+        rewrites them every second), final after :meth:`destroy`.
+        """
         if self._final_stats is not None and self._switch is None:
             return self._final_stats
         try:
@@ -319,7 +335,7 @@ class VirtualLan:
             return None
 
     def switch_running(self) -> bool:
-        """True while the switch process runs."""
+        """Tell whether the switch process runs."""
         return self._switch is not None and self._switch.poll() is None
 
 
@@ -359,7 +375,7 @@ def _percentiles(values: List[float]) -> Dict[str, float]:
 
 
 def relay_main(argv: Optional[Sequence[str]] = None) -> int:
-    """The switch: forward frames between the hosts' TAPs with delay and loss (see module)."""
+    """Run the switch: forward frames between the hosts' TAPs with delay and loss (see module)."""
     parser = argparse.ArgumentParser(prog='python -m stereo_manip_tools.netns',
                                      description='simulated Ethernet switch between TAPs')
     parser.add_argument('namespaces', nargs='+')

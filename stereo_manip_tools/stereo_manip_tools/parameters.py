@@ -1,4 +1,5 @@
-"""ParameterDescriptor builders and input QoS choices shared by every node.
+"""
+ParameterDescriptor builders and input QoS choices shared by every node.
 
 Every node declares each parameter with a description, a range and read-only where it must be;
 these helpers keep those declarations short and identical across packages.
@@ -21,7 +22,7 @@ __all__ = ['float_descriptor', 'int_descriptor', 'string_descriptor', 'bool_desc
 
 def float_descriptor(description: str, low: float, high: float,
                      read_only: bool = False) -> ParameterDescriptor:
-    """A double parameter in ``[low, high]``."""
+    """Describe a double parameter in ``[low, high]``."""
     return ParameterDescriptor(type=ParameterType.PARAMETER_DOUBLE, description=description,
                                read_only=read_only,
                                floating_point_range=[FloatingPointRange(
@@ -30,7 +31,7 @@ def float_descriptor(description: str, low: float, high: float,
 
 def int_descriptor(description: str, low: int, high: int,
                    read_only: bool = False) -> ParameterDescriptor:
-    """An integer parameter in ``[low, high]`` (step 1)."""
+    """Describe an integer parameter in ``[low, high]`` (step 1)."""
     return ParameterDescriptor(type=ParameterType.PARAMETER_INTEGER, description=description,
                                read_only=read_only,
                                integer_range=[IntegerRange(from_value=int(low),
@@ -39,7 +40,8 @@ def int_descriptor(description: str, low: int, high: int,
 
 def string_descriptor(description: str, read_only: bool = False,
                       additional_constraints: str = '') -> ParameterDescriptor:
-    """A string parameter (validate its value in the node's on-set callback).
+    """
+    Describe a string parameter (validate its value in the node's on-set callback).
 
     :param additional_constraints: free text shown by ``ros2 param describe`` (e.g. the
         allowed values).
@@ -50,7 +52,7 @@ def string_descriptor(description: str, read_only: bool = False,
 
 
 def bool_descriptor(description: str, read_only: bool = False) -> ParameterDescriptor:
-    """A boolean parameter."""
+    """Describe a boolean parameter."""
     return ParameterDescriptor(type=ParameterType.PARAMETER_BOOL, description=description,
                                read_only=read_only)
 
@@ -59,7 +61,7 @@ INPUT_QOS_CHOICES = ('sensor_data', 'reliable')
 
 
 def input_qos_descriptor(topic: str) -> ParameterDescriptor:
-    """The read-only ``input_qos`` parameter of a node taking large messages on ``topic``."""
+    """Describe the read-only ``input_qos`` parameter of a node taking large messages."""
     return ParameterDescriptor(
         type=ParameterType.PARAMETER_STRING, read_only=True,
         description=f'QoS of the {topic} subscription: sensor_data (best effort, REP 2003) or '
@@ -69,7 +71,8 @@ def input_qos_descriptor(topic: str) -> ParameterDescriptor:
 
 
 def input_qos_profile(choice: str, depth: int = 2) -> QoSProfile:
-    """The subscription QoS of an ``input_qos`` value.
+    """
+    Return the subscription QoS of an ``input_qos`` value.
 
     :raises ValueError: ``choice`` is not one of :data:`INPUT_QOS_CHOICES`.
     """
@@ -82,7 +85,10 @@ def input_qos_profile(choice: str, depth: int = 2) -> QoSProfile:
 
 
 def nonfinite_parameter_reason(params: Iterable[Parameter]) -> Optional[str]:
-    """Why a parameter update must be refused because a double (or an element of a double
+    """
+    Why a parameter update with a NaN or infinite double must be refused.
+
+    Why a parameter update must be refused because a double (or an element of a double
     array) is NaN or infinite; None when every value is finite.
 
     A ranged double already refuses NaN (rclpy's range test), but an unranged double, every
@@ -102,7 +108,8 @@ def nonfinite_parameter_reason(params: Iterable[Parameter]) -> Optional[str]:
 
 
 def reject_nonfinite_parameters(node: Any) -> None:
-    """Add an on-set-parameters callback to ``node`` that refuses NaN/inf doubles.
+    """
+    Add an on-set-parameters callback to ``node`` that refuses NaN/inf doubles.
 
     Call it in the node's ``__init__`` before declaring parameters, so start-up overrides
     (``-p name:=.nan``) are checked too (the declaration then raises, which

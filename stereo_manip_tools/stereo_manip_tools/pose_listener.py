@@ -1,4 +1,5 @@
-"""A controller-side client: subscribe to PoseStamped topics and log each pose on arrival.
+"""
+A controller-side client: subscribe to PoseStamped topics and log each pose on arrival.
 
 Stands in for the robot controller of a multi-machine cell: it only consumes poses, and it
 records, for every message, the topic, the header stamp, the wall-clock arrival time and the

@@ -1,4 +1,5 @@
-"""Package executables as their own processes, the way ``ros2 run`` starts them.
+"""
+Package executables as their own processes, the way ``ros2 run`` starts them.
 
 Used by the test harness and by the demo pipeline runner. The executable is found through the
 ament index (``<prefix>/lib/<package>/<executable>``), output goes to a temporary log file, and
@@ -21,11 +22,12 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-__all__ = ['make_node', 'shutdown_node', 'spin_until', 'executable_path', 'ExecutableProcess']
+__all__ = ['make_node', 'shutdown_node', 'spin_until', 'executable_path', 'ExecutableProcess',
+           'process_cpu_seconds']
 
 
 def make_node(name: Optional[str] = None) -> Node:
-    """A node in a fresh rclpy Context (destroy with ``shutdown_node``)."""
+    """Make a node in a fresh rclpy Context (destroy with ``shutdown_node``)."""
     context = Context()
     rclpy.init(context=context)
     return rclpy.create_node(name or f'test_{uuid.uuid4().hex[:8]}', context=context)
@@ -40,8 +42,12 @@ def shutdown_node(node: Node) -> None:
 
 def spin_until(nodes: Union[Node, Sequence[Node]], predicate: Callable[[], bool],
                timeout: float = 10.0) -> bool:
-    """Spin one node, or several nodes of one context together (e.g. a node under test and the
-    test's own node), until ``predicate()`` is true or ``timeout`` [s] expires; returns it."""
+    """
+    Spin nodes until ``predicate()`` is true or ``timeout`` [s] expires.
+
+    Spin one node, or several nodes of one context together (e.g. a node under test and the
+    test's own node), until ``predicate()`` is true or ``timeout`` [s] expires; returns it.
+    """
     group = [nodes] if isinstance(nodes, Node) else list(nodes)
     executor = SingleThreadedExecutor(context=group[0].context)
     for node in group:
@@ -60,7 +66,8 @@ def spin_until(nodes: Union[Node, Sequence[Node]], predicate: Callable[[], bool]
 
 
 def executable_path(package: str, executable: str) -> Path:
-    """``<prefix of package>/lib/<package>/<executable>`` from the ament index (as ros2 run).
+    """
+    ``<prefix of package>/lib/<package>/<executable>`` from the ament index (as ros2 run).
 
     :raises FileNotFoundError: package not in the index or executable not installed.
     """
@@ -95,7 +102,7 @@ class ExecutableProcess:
         return Path(self._log.name).read_text(errors='replace')
 
     def running(self) -> bool:
-        """True while the process has not exited."""
+        """Tell whether the process has not exited yet."""
         return self.process.poll() is None
 
     def wait_for_node(self, observer: Node, node_name: str, timeout: float = 30.0) -> bool:
@@ -140,3 +147,12 @@ class ExecutableProcess:
             os.unlink(self._log.name)
         except OSError:
             pass
+
+
+def process_cpu_seconds(pid: int) -> float:
+    """Return utime + stime [s] of a process from /proc (NaN once it has gone)."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    except (OSError, IndexError, ValueError):
+        return float('nan')

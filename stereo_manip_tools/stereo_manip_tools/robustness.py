@@ -1,5 +1,8 @@
-"""What every node needs to survive bad input: counted, rate-limited rejections, a guard
-around callbacks, and start-up errors as one line + exit code 1.
+"""
+What every node needs to survive bad input.
+
+counted, rate-limited rejections, a guard around callbacks, and start-up errors as one line + exit
+code 1.
 
 - :class:`InputRejections`: ``reject(reason, message)`` counts per reason and logs a warning
   at most once per second and reason (a misconfigured 30 Hz source must not flood the log);
@@ -22,8 +25,10 @@ from typing import Any, Callable, Dict, Optional, Sequence, TypeVar
 
 import rclpy
 from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
 
-__all__ = ['InputRejections', 'STARTUP_ERRORS', 'create_node_or_exit', 'init_or_exit']
+__all__ = ['InputRejections', 'STARTUP_ERRORS', 'create_node_or_exit', 'init_or_exit',
+           'spin_until_shutdown']
 
 #: Exceptions a node constructor raises for bad start-up configuration.
 STARTUP_ERRORS = (ParameterException, ValueError, TypeError, OSError, LookupError)
@@ -32,7 +37,8 @@ NodeT = TypeVar('NodeT')
 
 
 class InputRejections:
-    """Counts of rejected input per reason, with rate-limited warnings on ``logger``.
+    """
+    Counts of rejected input per reason, with rate-limited warnings on ``logger``.
 
     :param period: shortest interval [s] between two warnings of the same reason.
     """
@@ -67,8 +73,11 @@ class InputRejections:
 
     def guard(self, callback: Callable[..., Any], what: str,
               default: Optional[Callable[..., Any]] = None) -> Callable[..., Any]:
-        """``callback`` that never raises: ValueError -> rejection (its ``reason`` attribute or
-        ``'invalid'``), any other Exception -> ``'internal_error'``, logged with its type.
+        """
+        Wrap ``callback`` so that it never raises.
+
+        ValueError -> rejection (its ``reason`` attribute or ``'invalid'``), any other Exception ->
+        ``'internal_error'``, logged with its type.
 
         :param default: for service callbacks, called with the callback's arguments and the
             exception to build the response returned instead.
@@ -104,10 +113,29 @@ def init_or_exit(args: Optional[Sequence[str]], prog: str) -> None:
 
 def create_node_or_exit(factory: Callable[..., NodeT], prog: str, *args: Any,
                         **kwargs: Any) -> NodeT:
-    """``factory(*args, **kwargs)``; a start-up error (:data:`STARTUP_ERRORS`) prints
-    ``<prog>: <reason>`` on stderr, shuts rclpy down and exits with code 1."""
+    """
+    Return ``factory(*args, **kwargs)``, exiting cleanly on a start-up error.
+
+    A start-up error (:data:`STARTUP_ERRORS`) prints ``<prog>: <reason>`` on stderr, shuts rclpy
+    down and exits with code 1.
+    """
     try:
         return factory(*args, **kwargs)
     except STARTUP_ERRORS as exc:
         _fail(prog, exc)
         raise  # unreachable: _fail exits
+
+
+def spin_until_shutdown(node: Any) -> None:
+    """
+    Spin ``node`` until Ctrl-C or an external shutdown, then destroy it and shut rclpy down.
+
+    The end of every node's ``main()`` (the Jazzy ``demo_nodes_py`` idiom).
+    """
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()

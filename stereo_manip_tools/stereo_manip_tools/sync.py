@@ -1,4 +1,5 @@
-"""Stamp synchroniser: pairs messages from several streams by header stamp (pure Python).
+"""
+Stamp synchroniser: pairs messages from several streams by header stamp (pure Python).
 
 Replaces ``message_filters`` (not on PyPI). With ``tolerance_ns = 0`` it matches exact stamps
 (``TimeSynchronizer``); with a tolerance it matches the set whose stamps all lie within the
@@ -15,7 +16,8 @@ __all__ = ['StampSynchronizer']
 
 
 class StampSynchronizer:
-    """Group items from the streams ``keys`` that carry the same (or nearly the same) stamp.
+    """
+    Group items from the streams ``keys`` that carry the same (or nearly the same) stamp.
 
     :param keys: stream names, e.g. ``('left', 'right', 'left_info', 'right_info')``.
     :param tolerance_ns: largest allowed stamp spread within a set [ns]; 0 = exact.
@@ -48,7 +50,8 @@ class StampSynchronizer:
         self._last_match_ns: Optional[int] = None
 
     def add(self, key: Hashable, stamp_ns: int, item: Any) -> Optional[Dict[Hashable, Any]]:
-        """Offer one item; returns ``{key: item}`` for every stream when a set is complete.
+        """
+        Offer one item; returns ``{key: item}`` for every stream when a set is complete.
 
         Items older than the last emitted set are dropped (counted), so output stamps are
         strictly increasing - unless older by more than ``restart_after_ns``: then the source

@@ -1,4 +1,5 @@
-"""Test harness shared by every package (a pytest plugin loaded by the root ``conftest.py``).
+"""
+Test harness shared by every package (a pytest plugin loaded by the root ``conftest.py``).
 
 - fixture ``ros_node``: an in-process rclpy node in its own ``Context``, destroyed after the test;
 - :func:`spin_until`, :func:`wait_for_message`, :func:`collect_messages`: spin until a condition
@@ -17,9 +18,8 @@ from typing import Any, Iterator, List, Optional, Sequence
 
 import pytest
 from rclpy.node import Node
-
-from stereo_manip_tools.processes import ExecutableProcess, executable_path, make_node, \
-    shutdown_node, spin_until
+from stereo_manip_tools.processes import (
+    executable_path, ExecutableProcess, make_node, shutdown_node, spin_until)
 
 __all__ = [
     'ros_node',
@@ -39,7 +39,7 @@ __all__ = [
 
 @pytest.fixture
 def ros_node() -> Iterator[Node]:
-    """An in-process rclpy node with its own Context, for the duration of one test."""
+    """Provide an in-process rclpy node with its own Context, for the duration of one test."""
     node = make_node()
     try:
         yield node
@@ -61,9 +61,13 @@ def collect_messages(node: Node, msg_type: Any, topic: str, count: int, timeout:
 
 def call_service(nodes: Any, srv_type: Any, name: str, request: Any,
                  timeout: float = 30.0) -> Any:
-    """Call service ``name`` from the first of ``nodes`` (spinning all of them, so an in-process
+    """
+    Call service ``name`` and return the response.
+
+    Call service ``name`` from the first of ``nodes`` (spinning all of them, so an in-process
     server can answer) and return the response; fails the test if the service does not come up
-    or answer within ``timeout`` [s]."""
+    or answer within ``timeout`` [s].
+    """
     group = [nodes] if isinstance(nodes, Node) else list(nodes)
     client = group[0].create_client(srv_type, name)
     try:
@@ -77,14 +81,15 @@ def call_service(nodes: Any, srv_type: Any, name: str, request: Any,
 
 def wait_for_message(node: Node, msg_type: Any, topic: str, timeout: float = 10.0,
                      qos: Any = 10) -> Any:
-    """The first message on ``topic`` within ``timeout`` [s], or None."""
+    """Wait for the first message on ``topic`` within ``timeout`` [s]; None if none came."""
     msgs = collect_messages(node, msg_type, topic, 1, timeout, qos)
     return msgs[0] if msgs else None
 
 
 def wait_for_subscribers(node: Node, publishers: Sequence[Any], timeout: float = 20.0,
                          settle: float = 1.0) -> bool:
-    """Wait until every publisher has a matched subscription, then ``settle`` seconds more.
+    """
+    Wait until every publisher has a matched subscription, then ``settle`` seconds more.
 
     A publisher sees the remote reader before the remote side has matched the writer; a
     message sent in between is lost (volatile durability), which is harmless for streams but
@@ -102,7 +107,8 @@ def wait_for_subscribers(node: Node, publishers: Sequence[Any], timeout: float =
 def start_executable(package: str, executable: str, *args: str, ros_args: Sequence[str] = (),
                      observer: Optional[Node] = None, wait_for_node: Optional[str] = None,
                      timeout: float = 30.0, env: Optional[dict] = None) -> ExecutableProcess:
-    """Start an installed executable as its own process (``ros2 run`` semantics).
+    """
+    Start an installed executable as its own process (``ros2 run`` semantics).
 
     With ``wait_for_node`` (and an ``observer`` node to look at the graph) it waits until that
     node appears and raises ``RuntimeError`` with the process output if it does not.
@@ -130,7 +136,8 @@ _INT_RANGES = {'int8': 127, 'uint8': 255, 'int16': 32767, 'uint16': 65535, 'int3
 
 
 def fill_message(msg_class: Any, seed: int = 0, depth: int = 0) -> Any:
-    """A message of ``msg_class`` with every field set to a non-default pseudo-random value.
+    """
+    Make a message of ``msg_class`` with every field set to a non-default pseudo-random value.
 
     Sequences get 1-3 elements, nested messages are filled recursively, so a round trip that
     drops or mangles any field shows up in ``==``.

@@ -1,4 +1,5 @@
-"""TF for stereo_manip nodes: broadcasters on ``/tf`` and ``/tf_static`` and a small listener.
+"""
+TF for stereo_manip nodes: broadcasters on ``/tf`` and ``/tf_static`` and a small listener.
 
 ``tf2_ros`` is not on PyPI, so this module does the part of it the nodes need, on the wire
 exactly as tf2_ros does it: ``tf2_msgs/msg/TFMessage`` on ``/tf`` (reliable, volatile, depth 100:
@@ -34,12 +35,11 @@ from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from tf2_msgs.msg import TFMessage
-
 from stereo_manip_tools.conversions import matrix_to_transform, \
     pose_stamped_to_transform_stamped, transform_stamped_to_matrix
 from stereo_manip_tools.parameters import bool_descriptor, string_descriptor
 from stereo_manip_tools.transforms import invert_transform, pose_from_xyz_quaternion
+from tf2_msgs.msg import TFMessage
 
 __all__ = [
     'TF_TOPIC',
@@ -100,7 +100,8 @@ class TransformBroadcaster:
         self._pub = node.create_publisher(TFMessage, TF_TOPIC, qos)
 
     def send_transform(self, transforms: TransformLike) -> None:
-        """Publish one transform or several in one ``TFMessage``.
+        """
+        Publish one transform or several in one ``TFMessage``.
 
         :raises ValueError: a transform without parent or child frame, or from a frame to itself.
         """
@@ -111,7 +112,8 @@ class TransformBroadcaster:
 
 
 class StaticTransformBroadcaster:
-    """``tf2_ros.StaticTransformBroadcaster``: latched transforms on ``/tf_static``.
+    """
+    ``tf2_ros.StaticTransformBroadcaster``: latched transforms on ``/tf_static``.
 
     Every call publishes all static transforms sent so far (one per child frame, the newest
     wins), as tf2_ros does: ``/tf_static`` keeps only the last message per publisher.
@@ -130,7 +132,8 @@ class StaticTransformBroadcaster:
 
 
 class PoseTfPublisher:
-    """The TF hook of a node that publishes object poses.
+    """
+    The TF hook of a node that publishes object poses.
 
     Declares the parameter ``publish_tf`` (bool, default true; read at every call, so it can be
     switched at run time) and broadcasts a ``PoseStamped`` as the transform
@@ -148,7 +151,7 @@ class PoseTfPublisher:
 
     @property
     def enabled(self) -> bool:
-        """Current value of ``publish_tf``."""
+        """Return the current value of ``publish_tf``."""
         return bool(self._node.get_parameter('publish_tf').value)
 
     def send(self, poses: Sequence[Tuple[PoseStamped, str]]) -> None:
@@ -173,8 +176,12 @@ class PoseTfPublisher:
             self.sent += len(transforms)
 
     def follow(self, publisher: Publisher, child_frame: Union[str, Callable[[], str]]) -> None:
-        """Broadcast every PoseStamped ``publisher`` publishes, as ``child_frame`` (a name or a
-        function giving it at publish time), right after the pose itself is published."""
+        """
+        Broadcast every PoseStamped ``publisher`` publishes, as ``child_frame``.
+
+        Broadcast every PoseStamped ``publisher`` publishes, as ``child_frame`` (a name or a
+        function giving it at publish time), right after the pose itself is published.
+        """
         publish = publisher.publish
 
         def publish_and_broadcast(msg: PoseStamped) -> None:
@@ -198,7 +205,8 @@ BODY_TO_OPTICAL_QUATERNION = (-0.5, 0.5, -0.5, 0.5)
 
 
 def publish_camera_mount(node: Node) -> Optional[StaticTransformBroadcaster]:
-    """Declare the camera-mount parameters and publish the static transform they describe.
+    """
+    Declare the camera-mount parameters and publish the static transform they describe.
 
     Parameters (read-only): ``camera_mount_parent`` (frame the camera is mounted on, e.g.
     ``base_link`` or ``world``; empty, the default: no transform is published),
@@ -243,7 +251,8 @@ class FrameLookupError(KeyError):
 
 
 class TransformListener:
-    """Newest transform per child frame from ``/tf`` and ``/tf_static``; chains composed.
+    """
+    Newest transform per child frame from ``/tf`` and ``/tf_static``; chains composed.
 
     A minimal stand-in for ``tf2_ros.Buffer`` + ``TransformListener`` (no time interpolation,
     no extrapolation checks): enough for a controller that needs the newest pose of a frame in
@@ -297,7 +306,8 @@ class TransformListener:
         return T, (0 if stamp is None else stamp)
 
     def lookup(self, target_frame: str, source_frame: str) -> Tuple[np.ndarray, int]:
-        """Newest ``T_target_source`` (maps points of ``source_frame`` into ``target_frame``).
+        """
+        Newest ``T_target_source`` (maps points of ``source_frame`` into ``target_frame``).
 
         :returns: ``(T 4x4, stamp_ns)`` where the stamp is the oldest dynamic stamp in the chain
             (0 if only static transforms are involved).

@@ -1,4 +1,9 @@
-"""Rigid-transform and rotation helpers shared by every stereo_manip package (pure numpy).
+"""
+Rigid-transform and rotation helpers shared by every stereo_manip package (numpy).
+
+The one home of the workspace's rotation math: single rotations (``skew``,
+``rotation_about_axis``, ``rotation_log``, ...) and batched ones over (N, 3, 3) stacks
+(``rotations_about_axis``, ``rotation_vectors``, ``minimal_rotations_onto``, ...).
 
 Conventions (REP 103): metres and radians; a pose is a 4x4 homogeneous matrix ``T`` that maps
 points from a child frame into a parent frame, ``p_parent = T[:3, :3] @ p_child + T[:3, 3]``.
@@ -12,7 +17,10 @@ import numpy as np
 __all__ = [
     'skew',
     'rotation_about_axis',
+    'rotations_about_axis',
     'rotation_log',
+    'rotation_vectors',
+    'signed_angles_about_axis',
     'rotation_angle',
     'is_rotation_matrix',
     'nearest_rotation',
@@ -22,13 +30,15 @@ __all__ = [
     'quaternion_from_matrix',
     'matrix_from_quaternion',
     'minimal_rotation_between',
+    'minimal_rotations_onto',
+    'perpendicular_basis',
     'check_transform',
     'pose_from_xyz_quaternion',
 ]
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """Return the 3x3 cross-product matrix ``[v]x`` so that ``skew(v) @ w == cross(v, w)``."""
+    """Return the 3x3 cross-product matrix ``[v]x`` (``[v]x @ w == cross(v, w)``)."""
     x, y, z = np.asarray(v, dtype=float).reshape(3)
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
@@ -39,8 +49,18 @@ def rotation_about_axis(axis: np.ndarray, angle: float) -> np.ndarray:
     n = np.linalg.norm(a)
     if n == 0.0:
         raise ValueError('rotation_about_axis: zero-length axis')
-    k = skew(a / n)
-    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+    return rotations_about_axis(a / n, angle)[0]
+
+
+def rotations_about_axis(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """
+    Rodrigues' formula for many angles.
+
+    (N, 3, 3) rotations of ``angles`` [rad] (a scalar or shape (N,)) about a unit ``axis`` (3,).
+    """
+    K = skew(axis)
+    a = np.asarray(angles, dtype=float).reshape(-1, 1, 1)
+    return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
 
 
 def rotation_log(R: np.ndarray) -> np.ndarray:
@@ -52,8 +72,9 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
     if theta < 1e-7:
         return 0.5 * w
     if np.pi - theta < 1e-4:
-        # near pi: the axis is the dominant column of (R + I) / 2 = a a^T (approximately)
-        B = (R + np.eye(3)) / 2.0
+        # near pi: the symmetric part of R is cos(theta) I + (1 - cos(theta)) a a^T, so a a^T
+        # follows exactly (the skew part, O(pi - theta), is left out)
+        B = ((R + R.T) / 2.0 - cos_theta * np.eye(3)) / (1.0 - cos_theta)
         i = int(np.argmax(np.diag(B)))
         axis = B[:, i] / np.sqrt(max(B[i, i], 1e-300))
         if np.dot(axis, w) < 0:
@@ -62,13 +83,26 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
     return w * (theta / (2.0 * np.sin(theta)))
 
 
+def rotation_vectors(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (N, 3) [rad] of rotations (N, 3, 3) (robust near 0 and pi)."""
+    from scipy.spatial.transform import Rotation
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def signed_angles_about_axis(R: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Angle [rad] in (-pi, pi] of rotations (N, 3, 3) known to be about the unit ``axis``."""
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
+    c = (np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.arctan2(0.5 * (w @ axis), c)
+
+
 def rotation_angle(R: np.ndarray) -> float:
     """Angle [rad] in [0, pi] of a rotation matrix (robust near 0 and pi)."""
     return float(np.linalg.norm(rotation_log(R)))
 
 
 def is_rotation_matrix(R: np.ndarray, tol: float = 1e-6) -> bool:
-    """True when ``R`` is a finite 3x3 matrix with ``R^T R = I`` and ``det R = +1`` within tol."""
+    """Tell if ``R`` is a finite 3x3 matrix with ``R^T R = I`` and ``det R = +1`` within tol."""
     R = np.asarray(R, dtype=float)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         return False
@@ -104,7 +138,7 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a 3x3 rotation matrix (Shepperd)."""
+    """Convert a 3x3 rotation matrix to a unit quaternion ``(x, y, z, w)``, ``w >= 0``."""
     R = np.asarray(R, dtype=float)
     tr = np.trace(R)
     cands = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
@@ -127,8 +161,7 @@ def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
 
 
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
-    """3x3 rotation matrix of a quaternion ``(x, y, z, w)``; raises ValueError if not normalisable.
-    """
+    """Convert a quaternion ``(x, y, z, w)`` to a 3x3 rotation matrix (ValueError: zero/NaN)."""
     q = np.asarray(q, dtype=float).reshape(4)
     n = np.linalg.norm(q)
     if not np.isfinite(n) or n < 1e-9:
@@ -142,7 +175,8 @@ def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
 
 
 def minimal_rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest-angle rotation taking direction ``a`` onto direction ``b`` (both shape (3,)).
+    """
+    Smallest-angle rotation taking direction ``a`` onto direction ``b`` (both shape (3,)).
 
     The axis is ``a x b``; for antiparallel vectors any axis perpendicular to ``a`` is used.
     """
@@ -161,6 +195,45 @@ def minimal_rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return rotation_about_axis(c, np.arctan2(s, d))
 
 
+def minimal_rotations_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """
+    Smallest rotations (N, 3, 3) taking each unit vector ``a[i]`` (N, 3) onto unit ``b`` (3,).
+
+    Rodrigues with axis ``a x b``; for (nearly) antiparallel pairs a half turn about an axis
+    perpendicular to ``b`` is used.
+    """
+    a = np.asarray(a, dtype=float)
+    c = np.stack([a[:, 1] * b[2] - a[:, 2] * b[1], a[:, 2] * b[0] - a[:, 0] * b[2],
+                  a[:, 0] * b[1] - a[:, 1] * b[0]], axis=1)
+    s = np.sqrt(np.einsum('ni,ni->n', c, c))
+    d = np.clip(a @ b, -1.0, 1.0)
+    out = np.empty((a.shape[0], 3, 3))
+    ok = s > 1e-12
+    if ok.any():
+        k = c[ok] / s[ok, None]
+        K = np.zeros((k.shape[0], 3, 3))
+        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+        K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+        # sin = s, cos = d (exact, no arctan round trip)
+        out[ok] = np.eye(3) + s[ok, None, None] * K + (1.0 - d[ok, None, None]) * (K @ K)
+    for i in np.flatnonzero(~ok):
+        if d[i] > 0:
+            out[i] = np.eye(3)
+        else:
+            e1, _ = perpendicular_basis(b)
+            out[i] = 2.0 * np.outer(e1, e1) - np.eye(3)
+    return out
+
+
+def perpendicular_basis(n: np.ndarray) -> tuple:
+    """Two unit vectors (3,) completing unit ``n`` to a right-handed orthonormal basis."""
+    n = np.asarray(n, dtype=float)
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    e1 = np.cross(n, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
 def check_transform(T: np.ndarray, name: str = 'pose', tol: float = 1e-6) -> np.ndarray:
     """Validate a 4x4 rigid transform; return it as float array or raise ValueError naming why."""
     T = np.asarray(T, dtype=float)
@@ -176,8 +249,11 @@ def check_transform(T: np.ndarray, name: str = 'pose', tol: float = 1e-6) -> np.
 
 
 def pose_from_xyz_quaternion(values, name: str = 'pose') -> np.ndarray:
-    """4x4 pose of the parameter form ``[x, y, z, qx, qy, qz, qw]`` (metres; quaternion in ROS
-    order, normalised here).
+    """
+    Parse a pose parameter ``[x, y, z, qx, qy, qz, qw]`` into a 4x4 pose.
+
+    The one parser of this parameter form in the workspace: metres; quaternion in ROS order,
+    normalised here.
 
     :raises ValueError: naming ``name``: not 7 numbers, non-finite, or a zero quaternion.
     """

@@ -6,12 +6,11 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
-
 from stereo_manip_tools.conversions import (
-    camera_info_from_parameters, CameraInfoError, DEFAULT_MAX_ABS_COORDINATE, image_to_numpy,
-    IMAGE_ENCODINGS, MAX_POINTS_RECEIVED, matrices_to_path, matrix_to_pose, ns_to_stamp,
+    camera_info_from_parameters, CameraInfoError, DEFAULT_MAX_ABS_COORDINATE, IMAGE_ENCODINGS,
+    image_to_numpy, matrices_to_path, matrix_to_pose, MAX_POINTS_RECEIVED, ns_to_stamp,
     numpy_to_image, path_to_matrices, pointcloud2_to_array, PointCloudError, pose_to_matrix,
-    read_pointcloud2, stamp_to_ns, StereoCameraParameters, stereo_parameters_from_camera_info,
+    read_pointcloud2, stamp_to_ns, stereo_parameters_from_camera_info, StereoCameraParameters,
     xyz_to_pointcloud2)
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
@@ -120,8 +119,12 @@ def test_camera_info_errors_name_their_reason():
 
 
 def test_principal_point_offset_follows_middlebury():
-    """Motorcycle (Middlebury 2014): f 994.978 px, doffs 31.086 px, baseline 193.001 mm;
-    a disparity of 40 px is a depth of f * B / (d + doffs) = 2.70 m."""
+    """
+    Motorcycle (Middlebury 2014).
+
+    f 994.978 px, doffs 31.086 px, baseline 193.001 mm; a disparity of 40 px is a depth of f * B /
+    (d + doffs) = 2.70 m.
+    """
     params = StereoCameraParameters(fx=994.978, fy=994.978, cx=311.193, cy=254.877,
                                     baseline=0.193001, width=741, height=500, doffs=31.086)
     left, right = camera_info_from_parameters(params, Header())
@@ -154,23 +157,23 @@ def _cloud(points, **overrides):
 
 
 @pytest.mark.parametrize('change, reason', [
-    (dict(point_step=0), 'bad_layout'),
-    (dict(height=2, width=2, row_step=4), 'bad_layout'),
-    (dict(width=10), 'truncated'),
-    (dict(fields=[PointField(name='x', offset=0, datatype=7, count=1),
-                  PointField(name='y', offset=4, datatype=7, count=1),
-                  PointField(name='z', offset=40, datatype=7, count=1)]), 'bad_field'),
-    (dict(fields=[PointField(name='x', offset=0, datatype=0, count=1),
-                  PointField(name='y', offset=4, datatype=7, count=1),
-                  PointField(name='z', offset=8, datatype=7, count=1)]), 'bad_datatype'),
-    (dict(fields=[PointField(name='x', offset=0, datatype=99, count=1),
-                  PointField(name='y', offset=4, datatype=7, count=1),
-                  PointField(name='z', offset=8, datatype=7, count=1)]), 'bad_datatype'),
-    (dict(fields=[PointField(name='x', offset=0, datatype=7, count=1),
-                  PointField(name='x', offset=4, datatype=7, count=1),
-                  PointField(name='z', offset=8, datatype=7, count=1)]), 'bad_field'),
-    (dict(fields=[PointField(name='x', offset=0, datatype=7, count=1)]), 'missing_field'),
-    (dict(width=MAX_POINTS_RECEIVED + 1), 'too_large'),
+    ({'point_step': 0}, 'bad_layout'),
+    ({'height': 2, 'width': 2, 'row_step': 4}, 'bad_layout'),
+    ({'width': 10}, 'truncated'),
+    ({'fields': [PointField(name='x', offset=0, datatype=7, count=1),
+                 PointField(name='y', offset=4, datatype=7, count=1),
+                 PointField(name='z', offset=40, datatype=7, count=1)]}, 'bad_field'),
+    ({'fields': [PointField(name='x', offset=0, datatype=0, count=1),
+                 PointField(name='y', offset=4, datatype=7, count=1),
+                 PointField(name='z', offset=8, datatype=7, count=1)]}, 'bad_datatype'),
+    ({'fields': [PointField(name='x', offset=0, datatype=99, count=1),
+                 PointField(name='y', offset=4, datatype=7, count=1),
+                 PointField(name='z', offset=8, datatype=7, count=1)]}, 'bad_datatype'),
+    ({'fields': [PointField(name='x', offset=0, datatype=7, count=1),
+                 PointField(name='x', offset=4, datatype=7, count=1),
+                 PointField(name='z', offset=8, datatype=7, count=1)]}, 'bad_field'),
+    ({'fields': [PointField(name='x', offset=0, datatype=7, count=1)]}, 'missing_field'),
+    ({'width': MAX_POINTS_RECEIVED + 1}, 'too_large'),
 ])
 def test_pointcloud_layout_errors_name_their_reason(change, reason):
     msg = _cloud([[0.1, 0.2, 0.5], [0.3, 0.4, 0.6]], **change)

@@ -1,5 +1,9 @@
-"""Diagnostics helper: rates and stamp ages against a controlled clock, counter warnings, and the
-published DiagnosticArray of an in-process node."""
+"""
+Diagnostics helper.
+
+Rates and stamp ages against a controlled clock, counter warnings, and the published
+DiagnosticArray of an in-process node.
+"""
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
@@ -108,6 +112,7 @@ def test_node_diagnostics_publishes_counters_topics_and_task_errors():
 
 class FakeTrackStatus:
     """The fields of stereo_manip_msgs/TrackStatus that the diagnostics read."""
+
     ACQUIRING, TRACKING, LOST, STATIC = 0, 1, 2, 3
 
     def __init__(self, name, state, reason=''):

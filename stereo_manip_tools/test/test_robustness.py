@@ -1,11 +1,13 @@
-"""Shared robustness helpers: rejection counting, callback guard, start-up errors, files,
-NaN parameters."""
+"""
+Shared robustness helpers.
+
+Rejection counting, callback guard, start-up errors, files, NaN parameters.
+"""
 
 import os
 
-from rclpy.parameter import Parameter
 import pytest
-
+from rclpy.parameter import Parameter
 from stereo_manip_tools.files import check_regular_file, NotARegularFileError, \
     open_regular_file
 from stereo_manip_tools.parameters import nonfinite_parameter_reason, \

@@ -58,8 +58,12 @@ def test_bad_arguments():
 @settings(max_examples=100, deadline=None)
 @given(st.lists(st.integers(0, 50), min_size=1, max_size=30, unique=True), st.randoms())
 def test_every_common_stamp_matched_once_in_order(stamps, rnd):
-    """Streams carrying the same stamps, interleaved in random order but each stream in
-    increasing order, produce one set per stamp unless a partner arrives after a newer match."""
+    """
+    Every common stamp is matched once, in order.
+
+    Streams carrying the same stamps, interleaved in random order but each stream in
+    increasing order, produce one set per stamp unless a partner arrives after a newer match.
+    """
     sync = StampSynchronizer(['a', 'b'], queue_size=100)
     events = [('a', s) for s in sorted(stamps)] + [('b', s) for s in sorted(stamps)]
     rnd.shuffle(events)

@@ -1,5 +1,9 @@
-"""TF helpers: PoseStamped <-> TransformStamped, broadcasters' wire format and QoS, the listener's
-chain composition against poses composed by hand."""
+"""
+TF helpers.
+
+PoseStamped <-> TransformStamped, broadcasters' wire format and QoS, the listener's chain
+composition against poses composed by hand.
+"""
 
 from geometry_msgs.msg import PoseStamped, TransformStamped
 import numpy as np
@@ -7,14 +11,13 @@ import pytest
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from std_msgs.msg import Header
-from tf2_msgs.msg import TFMessage
-
 from stereo_manip_tools.conversions import matrix_to_pose, ns_to_stamp, \
     pose_stamped_to_transform_stamped, transform_stamped_to_matrix
 from stereo_manip_tools.testing import make_node, shutdown_node, spin_until
 from stereo_manip_tools.tf import FrameLookupError, PoseTfPublisher, \
     StaticTransformBroadcaster, TransformBroadcaster, TransformListener
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
+from tf2_msgs.msg import TFMessage
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:
@@ -58,8 +61,12 @@ def test_bad_poses_raise():
 
 @pytest.mark.ros
 def test_broadcasters_and_listener_compose_chains():
-    """world -(static)-> cam -> peg, cam -> hole: the listener's peg-in-hole equals the product
-    of the matrices, the static one reaches a late listener, bad input is refused."""
+    """
+    Compose world -(static)-> cam -> peg, cam -> hole through broadcasters and a listener.
+
+    The listener's peg-in-hole equals the product of the matrices, the static one reaches a late
+    listener, bad input is refused.
+    """
     rng = np.random.default_rng(7)
     T_w_c, T_c_p, T_c_h = (random_pose(rng) for _ in range(3))
     talker = make_node()
@@ -113,8 +120,11 @@ def test_broadcasters_and_listener_compose_chains():
 
 @pytest.mark.ros
 def test_camera_mount_parameters():
-    """The mount is published as declared; a malformed one is logged and left out (no crash);
-    no parent, no transform."""
+    """
+    The mount is published as declared.
+
+    a malformed one is logged and left out (no crash); no parent, no transform.
+    """
     from rclpy import create_node
     from stereo_manip_tools.tf import BODY_TO_OPTICAL_QUATERNION, publish_camera_mount
     anchor = make_node()

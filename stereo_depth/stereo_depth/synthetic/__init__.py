@@ -1,4 +1,5 @@
-"""Synthetic stereo camera: object models, camera model, texture, ray-cast renderer, scenes.
+"""
+Synthetic stereo camera: object models, camera model, texture, ray-cast renderer, scenes.
 
 Pure numpy/numba/OpenCV (no rclpy). The offline entry point is :func:`render`::
 
@@ -20,16 +21,17 @@ from stereo_manip_tools.mesh_io import find_model, load_obj
 
 from .camera import look_at, StereoCamera
 from .real_images import load_motorcycle, load_stereo_files, RealStereoPair
-from .renderer import RenderOptions, StereoRenderer
+from .renderer import RenderOptions, reprojection_errors, StereoRenderer
 from .scenes import make_scene, Scene, SCENES
 
 __all__ = ['render', 'SyntheticStereo', 'StereoCamera', 'RenderOptions', 'StereoRenderer',
            'Scene', 'SCENES', 'make_scene', 'look_at', 'load_motorcycle', 'load_stereo_files',
-           'RealStereoPair']
+           'RealStereoPair', 'reprojection_errors']
 
 
 class SyntheticStereo:
-    """A scene bound to a camera and a renderer: ``render(frame_index)`` gives a pair + truth.
+    """
+    A scene bound to a camera and a renderer: ``render(frame_index)`` gives a pair + truth.
 
     :param scene: scene name (see ``SCENES``) or a :class:`Scene`.
     :param seed: seed of the scene's random parameters and of the texture.
@@ -65,7 +67,8 @@ _CACHE: Dict[tuple, SyntheticStereo] = {}
 def render(scene: Union[str, Scene], frame_index: int, seed: int = 0,
            camera: Optional[StereoCamera] = None, options: Optional[RenderOptions] = None
            ) -> Tuple[np.ndarray, np.ndarray, dict]:
-    """Render frame ``frame_index`` of a built-in scene: ``(left, right, truth)``.
+    """
+    Render frame ``frame_index`` of a built-in scene: ``(left, right, truth)``.
 
     Images are uint8, (H, W) mono8 or (H, W, 3) rgb8 (``options.color``). Renderers are cached
     per (scene name, seed, camera, options), so calling this in a loop is cheap.

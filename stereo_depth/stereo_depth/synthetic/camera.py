@@ -1,4 +1,5 @@
-"""Rectified pinhole stereo camera model (pure numpy).
+"""
+Rectified pinhole stereo camera model (pure numpy).
 
 Conventions (REP 103 / ROS stereo): both cameras share the intrinsic matrix K; the left optical
 frame is the reference (z forward, x right, y down, metres); the right camera centre sits at
@@ -24,7 +25,8 @@ __all__ = ['StereoCamera', 'look_at']
 
 @dataclass(frozen=True)
 class StereoCamera:
-    """Rectified stereo pair with identical intrinsics.
+    """
+    Rectified stereo pair with identical intrinsics.
 
     :ivar width: image width [px] (> 0).
     :ivar height: image height [px] (> 0).
@@ -60,7 +62,8 @@ class StereoCamera:
     def create(cls, width: int = 640, height: int = 480, fx: float = 600.0,
                fy: float | None = None, baseline: float = 0.10, cx: float | None = None,
                cy: float | None = None) -> 'StereoCamera':
-        """Camera with square pixels and centred principal point unless given.
+        """
+        Camera with square pixels and centred principal point unless given.
 
         The defaults (fx = 600 px, B = 0.10 m) give disparities 120 px at 0.5 m and 40 px at
         1.5 m, the chapter's working range.
@@ -92,7 +95,8 @@ class StereoCamera:
         return np.array([self.baseline, 0.0, 0.0])
 
     def ray_directions(self) -> np.ndarray:
-        """Per-pixel ray directions with unit z, ``((u - cx)/fx, (v - cy)/fy, 1)``, (H, W, 3).
+        """
+        Per-pixel ray directions with unit z, ``((u - cx)/fx, (v - cy)/fy, 1)``, (H, W, 3).
 
         Because the z component is 1, the ray parameter of a hit equals its depth Z [m].
         """
@@ -134,12 +138,13 @@ class StereoCamera:
 
     @property
     def shape(self) -> Tuple[int, int]:
-        """Image shape (height, width)."""
+        """Return (height, width) of the images."""
         return (self.height, self.width)
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """4x4 pose of an optical frame (z forward, x right, y down) at ``eye`` looking at ``target``.
+    """
+    4x4 pose of an optical frame (z forward, x right, y down) at ``eye`` looking at ``target``.
 
     :param eye: camera centre in the world frame [m], (3,).
     :param target: point looked at [m], (3,).

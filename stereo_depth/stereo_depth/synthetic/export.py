@@ -1,4 +1,5 @@
-"""Offline export of synthetic stereo sequences to files (no ROS needed).
+"""
+Offline export of synthetic stereo sequences to files (no ROS needed).
 
 ``python -m stereo_depth.synthetic.export --scene peg_in_hole --frames 0:225:5 --out DIR``
 writes, per frame k: ``left_<k>.png``, ``right_<k>.png`` (mono8 or rgb8) and ``truth_<k>.npz``
@@ -28,7 +29,8 @@ __all__ = ['export_sequence', 'main', 'parse_frames']
 
 
 def parse_frames(spec: str) -> List[int]:
-    """``'10'`` -> [10]; ``'a:b'`` / ``'a:b:s'`` -> range(a, b, s).
+    """
+    ``'10'`` -> [10]; ``'a:b'`` / ``'a:b:s'`` -> range(a, b, s).
 
     :raises ValueError: for a malformed or empty specification.
     """

@@ -1,4 +1,5 @@
-"""Generator of the object models shipped in ``stereo_manip_models/models/`` (pure numpy).
+"""
+Generator of the object models shipped in ``stereo_manip_models/models/`` (pure numpy).
 
 Run ``python -m stereo_depth.synthetic.make_models [out_dir]`` to (re)write every model; the
 committed OBJ files are exactly its output, so the models are reproducible. All models are in
@@ -32,6 +33,7 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 
 from stereo_manip_tools.mesh_io import PolygonMesh, save_obj
+from stereo_manip_tools.shapes import box_mesh, hole_block_mesh, slot_block_mesh
 
 # the source folder of the data package stereo_manip_models (the committed models)
 SOURCE_MODELS_DIR = Path(__file__).resolve().parents[3] / 'stereo_manip_models' / 'models'
@@ -80,65 +82,20 @@ JOINTS: Dict[str, Dict[str, object]] = {
 }
 
 
-def box_mesh(lo: Sequence[float], hi: Sequence[float], name: str) -> PolygonMesh:
-    """Axis-aligned box between corners ``lo`` and ``hi`` [m], six CCW quads."""
-    x0, y0, z0 = lo
-    x1, y1, z1 = hi
-    V = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
-                  [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]], dtype=float)
-    F = [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
-    return PolygonMesh(V, F, name)
-
-
 def peg() -> PolygonMesh:
     """Peg: 0.04 x 0.04 x 0.12 m box, origin at the bottom-face centre, +z along its length."""
     return box_mesh((-0.02, -0.02, 0.0), (0.02, 0.02, 0.12), 'peg')
 
 
 def hole_block(size: float = 0.16, height: float = 0.08, hole: float = 0.04) -> PolygonMesh:
-    """Block with a square through hole; origin at the top-face centre, +z up.
-
-    Vertices 0-3 outer top, 4-7 inner top, 8-11 outer bottom, 12-15 inner bottom, each ring
-    counter-clockwise seen from +z starting at (-,-).
-    """
-    a, b = size / 2, hole / 2
-    ring_o = [(-a, -a), (a, -a), (a, a), (-a, a)]
-    ring_i = [(-b, -b), (b, -b), (b, b), (-b, b)]
-    V = ([(x, y, 0.0) for x, y in ring_o] + [(x, y, 0.0) for x, y in ring_i]
-         + [(x, y, -height) for x, y in ring_o] + [(x, y, -height) for x, y in ring_i])
-    F: List[List[int]] = []
-    for k in range(4):
-        n = (k + 1) % 4
-        F.append([k, n, 4 + n, 4 + k])                # top trapezoid, normal +z
-        F.append([8 + k, 12 + k, 12 + n, 8 + n])       # bottom trapezoid, normal -z
-        F.append([k, 8 + k, 8 + n, n])                 # outer wall, outward
-        F.append([4 + k, 4 + n, 12 + n, 12 + k])       # hole wall, normal towards hole axis
-    return PolygonMesh(np.array(V, dtype=float), F, 'hole_block')
+    """Block with a square through hole; origin at the top-face centre, +z up."""
+    return hole_block_mesh(size, height, hole, 'hole_block')
 
 
 def slot_block(size: float = 0.16, height: float = 0.08, width: float = 0.04,
                depth: float = 0.04) -> PolygonMesh:
-    """Block with a slot along x across the top; origin at the top-face centre, +z up.
-
-    The U-shaped cross-section (y, z) is extruded along x; each end face is split into three
-    convex quads that use only the section's own vertices (no T-junctions).
-    """
-    a, w = size / 2, width / 2
-    # Cross-section, counter-clockwise seen from +x: A B C D E F G H.
-    sec = [(-a, -height), (a, -height), (a, 0.0), (w, 0.0), (w, -depth), (-w, -depth),
-           (-w, 0.0), (-a, 0.0)]
-    V = [(-a, y, z) for y, z in sec] + [(a, y, z) for y, z in sec]
-    n = len(sec)
-    F: List[List[int]] = []
-    # End faces: x = +a seen from +x is CCW in (y, z); x = -a reversed.
-    pieces = [[0, 1, 4, 5], [1, 2, 3, 4], [5, 6, 7, 0]]
-    for p in pieces:
-        F.append([n + i for i in p])
-        F.append(list(reversed(p)))
-    for i in range(n):
-        j = (i + 1) % n
-        F.append([i, j, n + j, n + i])  # side strip between section edges i -> j
-    return PolygonMesh(np.array(V, dtype=float), F, 'slot_block')
+    """Block with a slot along x across the top; origin at the top-face centre, +z up."""
+    return slot_block_mesh(size, size, height, width, depth, 'slot_block')
 
 
 def table(size: float = 1.0, thickness: float = 0.02) -> PolygonMesh:
@@ -155,7 +112,8 @@ def cube(edge: float = PRIMITIVES['cube']['edge']) -> PolygonMesh:
 
 def _revolution_grid(ring_xy: np.ndarray, ring_z: np.ndarray, profile: np.ndarray,
                      name: str) -> PolygonMesh:
-    """Surface P(i, j) = (profile[i] * ring_xy[j], ring_z[i]) closed by polar caps.
+    """
+    Surface P(i, j) = (profile[i] * ring_xy[j], ring_z[i]) closed by polar caps.
 
     ``profile`` (n_i,) radial factor, ``ring_z`` (n_i,) heights from bottom (-z) to top,
     ``ring_xy`` (n_j, 2) CCW around +z. Quads between rings are trapezoids (planar) because
@@ -201,7 +159,8 @@ def sphere() -> PolygonMesh:
 
 
 def superquadric() -> PolygonMesh:
-    """Superellipsoid x = a1 C(eta)^e1 C(w)^e2, y = a2 C(eta)^e1 S(w)^e2, z = a3 S(eta)^e1.
+    """
+    Superellipsoid x = a1 C(eta)^e1 C(w)^e2, y = a2 C(eta)^e1 S(w)^e2, z = a3 S(eta)^e1.
 
     C/S are the signed powers of cos/sin; implicit form
     ``((|x/a1|^(2/e2) + |y/a2|^(2/e2))^(e2/e1) + |z/a3|^(2/e1)) = 1``.
@@ -317,7 +276,10 @@ MODEL_NAMES: Tuple[str, ...] = (
 
 
 def check_closed_manifold(mesh: PolygonMesh, planarity_tol: float = 1e-9) -> None:
-    """Raise ``ValueError`` unless every edge is used once in each direction (closed, oriented
+    """
+    Raise ``ValueError`` unless the mesh is a closed, oriented, convex-faced solid.
+
+    Raise ``ValueError`` unless every edge is used once in each direction (closed, oriented
     2-manifold), every face is planar and strictly convex-or-flat, and the volume is positive.
     """
     from collections import Counter

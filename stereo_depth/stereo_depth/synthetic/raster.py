@@ -1,4 +1,5 @@
-"""Exact per-pixel ray casting of triangle soups by z-buffered scan conversion (numba).
+"""
+Exact per-pixel ray casting of triangle soups by z-buffered scan conversion (numba).
 
 For every pixel (u, v) the ray from the optical centre with direction d = (x, y, 1),
 x = (u - cx)/fx, y = (v - cy)/fy, is intersected with each candidate triangle analytically
@@ -35,7 +36,8 @@ if nb.config.THREADING_LAYER == 'default':
 @nb.njit(cache=True, nogil=True)
 def triangle_setup(V: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int,
                    height: int) -> np.ndarray:
-    """Per-triangle constants for :func:`rasterize`, float64 (T, 17).
+    """
+    Per-triangle constants for :func:`rasterize`, float64 (T, 17).
 
     :param V: triangle vertices in this camera's optical frame [m], (T, 3, 3).
     :returns: columns a(3) b(3) c(3) k, front flag, pixel bbox umin umax vmin vmax (inclusive,
@@ -100,7 +102,8 @@ def _hit(tri: np.ndarray, x: float, y: float) -> Tuple[float, float, float]:
 @nb.njit(parallel=True, cache=True, nogil=True)
 def rasterize(tris: np.ndarray, fx: float, fy: float, cx: float, cy: float, n_bands: int,
               depth: np.ndarray, tid: np.ndarray, w1s: np.ndarray, w2s: np.ndarray) -> None:
-    """Z-buffer ``tris`` (prepared by :func:`triangle_setup`) over ``depth``, in place.
+    """
+    Z-buffer ``tris`` (prepared by :func:`triangle_setup`) over ``depth``, in place.
 
     :param depth: (H, W) float64 z-buffer [m], updated in place: inf where nothing was hit
         yet, or the depth of an already rendered (e.g. cached static) layer.
@@ -152,7 +155,8 @@ def shade(depth: np.ndarray, tid: np.ndarray, w1s: np.ndarray, w2s: np.ndarray,
           tri_obj: np.ndarray, tri_face: np.ndarray, tile: np.ndarray, id_offset: int,
           img: np.ndarray, tc: np.ndarray, z32: np.ndarray, oid: np.ndarray, fid: np.ndarray,
           tid_all: np.ndarray) -> None:
-    """Write the per-pixel outputs of the pixels a triangle won (``tid >= 0``), in place.
+    """
+    Write the per-pixel outputs of the pixels a triangle won (``tid >= 0``), in place.
 
     (s, t) = st0 + w1 d1 + w2 d2 per triangle [texels]; intensity = bilinear wrap-around lookup
     of ``tile`` (square, power-of-two side) at (s, t) times the per-triangle factor ``lambert``.
@@ -195,7 +199,8 @@ def shade(depth: np.ndarray, tid: np.ndarray, w1s: np.ndarray, w2s: np.ndarray,
 def occlusion_mask(depth_l: np.ndarray, tid_l: np.ndarray, tid_r: np.ndarray,
                    tris_r: np.ndarray, fx: float, fy: float, cx: float, cy: float,
                    baseline: float) -> np.ndarray:
-    """Left foreground pixels whose surface point the right camera does not see.
+    """
+    Left foreground pixels whose surface point the right camera does not see.
 
     For a left pixel with depth Z the point projects to the right at (u - fx B / Z, v). It is
     occluded if that lies left of the right image (u_r < -0.5), if its own triangle faces away
@@ -249,8 +254,12 @@ def colorize(img: np.ndarray, oid: np.ndarray, palette: np.ndarray) -> np.ndarra
 @nb.njit(parallel=True, cache=True, nogil=True)
 def quantize(img: np.ndarray, scale: float, noise: np.ndarray, offset: int,
              sigma: float) -> np.ndarray:
-    """uint8 image = clip(round(scale * img + sigma * noise[(offset + i) % len(noise)]), 0, 255)
-    for the flat pixel/channel index i (``noise``: a bank of standard normal samples)."""
+    """
+    Quantise an image to uint8 with noise from a bank.
+
+    uint8 image = clip(round(scale * img + sigma * noise[(offset + i) % len(noise)]), 0, 255)
+    for the flat pixel/channel index i (``noise``: a bank of standard normal samples).
+    """
     flat = np.ascontiguousarray(img).reshape(-1)
     out = np.empty(flat.size, np.uint8)
     n = noise.size

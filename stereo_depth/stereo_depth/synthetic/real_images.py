@@ -1,5 +1,8 @@
-"""Still real stereo pairs: the Middlebury 2014 Motorcycle pair shipped by scikit-image, or
-a pair of image files with user calibration (pure numpy/OpenCV).
+"""
+Still real stereo pairs.
+
+The Middlebury 2014 Motorcycle pair shipped by scikit-image, or a pair of image files with user
+calibration (pure numpy/OpenCV).
 
 Middlebury calibration (quarter resolution, as shipped by ``skimage.data.stereo_motorcycle``):
 f = 994.978 px, cx = 311.193 px, cy = 254.877 px, doffs = 31.086 px (x-difference of the
@@ -26,7 +29,8 @@ MOTORCYCLE_CALIBRATION = {'f': 994.978, 'cx': 311.193, 'cy': 254.877, 'doffs': 3
 
 @dataclass
 class RealStereoPair:
-    """A rectified still pair with calibration.
+    """
+    A rectified still pair with calibration.
 
     :ivar left: left image, uint8 (H, W) or (H, W, 3) RGB.
     :ivar right: right image, same shape.
@@ -102,7 +106,8 @@ class RealStereoPair:
 
 
 def load_motorcycle() -> RealStereoPair:
-    """The Middlebury 2014 Motorcycle pair from scikit-image (741 x 500, RGB, offline).
+    """
+    Load the Middlebury 2014 Motorcycle pair from scikit-image (741 x 500, RGB, offline).
 
     Ground truth disparity is float32 with non-finite values (NaN or +inf, depending on the
     scikit-image version) converted to NaN.
@@ -120,7 +125,8 @@ def load_stereo_files(left_path: str, right_path: str, fx: float, baseline: floa
                       cx: Optional[float] = None, cy: Optional[float] = None,
                       doffs: float = 0.0, disparity_path: Optional[str] = None
                       ) -> RealStereoPair:
-    """Load a rectified pair from image files (any format OpenCV reads; colour -> RGB).
+    """
+    Load a rectified pair from image files (any format OpenCV reads; colour -> RGB).
 
     :param fx: focal length [px] (> 0).
     :param baseline: [m] (> 0).

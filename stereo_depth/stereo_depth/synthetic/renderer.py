@@ -1,4 +1,5 @@
-"""Ray-cast stereo renderer with exact ground truth (CPU, headless).
+"""
+Ray-cast stereo renderer with exact ground truth (CPU, headless).
 
 Both views are cast from their own optical centre (no warping), so occlusions are real. A ray
 through pixel (u, v) has direction ((u - cx)/fx, (v - cy)/fy, 1): its hit parameter is the depth
@@ -51,12 +52,13 @@ from .camera import StereoCamera
 from .raster import colorize, occlusion_mask, quantize, rasterize, shade, triangle_setup
 from .texture import face_charts, make_noise_tile, triangle_corner_texcoords
 
-__all__ = ['RenderOptions', 'StereoRenderer']
+__all__ = ['RenderOptions', 'StereoRenderer', 'reprojection_errors']
 
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """Photometric options.
+    """
+    Photometric options.
 
     :ivar color: True for rgb8 images (H, W, 3), False for mono8 (H, W).
     :ivar noise_sigma: std of additive Gaussian noise [grey levels 0-255] (>= 0).
@@ -113,7 +115,8 @@ class _Model:
 
 
 class StereoRenderer:
-    """Renders stereo pairs of a fixed set of object models at given poses.
+    """
+    Renders stereo pairs of a fixed set of object models at given poses.
 
     Not thread-safe: one renderer reuses its working buffers; use one per thread.
 
@@ -234,7 +237,7 @@ class StereoRenderer:
         return view, setup
 
     def _static_layer(self, poses: Mapping[str, np.ndarray]) -> dict:
-        """Rendered buffers of the static objects (cached while their poses do not change)."""
+        """Render the buffers of the static objects (cached while their poses do not change)."""
         key = tuple((n, np.asarray(T, dtype=float).tobytes()) for n, T in sorted(poses.items()))
         if self._static is not None and self._static['key'] == key:
             return self._static
@@ -249,7 +252,8 @@ class StereoRenderer:
         return self._static
 
     def _photometric(self, img: np.ndarray, gain: float, rng: np.random.Generator) -> np.ndarray:
-        """Blur, gain, additive noise and quantisation to uint8 of a [0, 1] float image.
+        """
+        Blur, gain, additive noise and quantisation to uint8 of a [0, 1] float image.
 
         The noise samples are drawn from a per-renderer bank of 2^22 standard normals at a
         random offset per image (drawn from ``rng``), which is much faster than fresh samples.
@@ -263,7 +267,8 @@ class StereoRenderer:
 
     def render(self, poses: Mapping[str, np.ndarray], noise_key: Sequence[int] = (0,),
                static: Sequence[str] = ()) -> Tuple[np.ndarray, np.ndarray, dict]:
-        """Render one stereo pair.
+        """
+        Render one stereo pair.
 
         :param poses: ``{object name: T_left_object (4x4)}``; objects not listed are absent.
         :param noise_key: integers seeding the photometric noise of this pair (with the seed).
@@ -308,3 +313,47 @@ class StereoRenderer:
             'camera': cam.as_dict(),
         }
         return left_img, right_img, truth
+
+
+def reprojection_errors(truth: dict, n: int = 400, seed: int = 0) -> np.ndarray:
+    """
+    Reprojection distances [px] of the left depth into the right image.
+
+    Distance [px] between the projection into the right camera of the back-projected left
+    depth and the right-image location whose texture coordinates equal the left pixel's, for
+    up to ``n`` random valid, unoccluded left pixels (``seed``) of a rendered ``truth``; the
+    geometry check of the acceptance test and of ``bench/camera_render_rate.py``.
+    """
+    cam = truth['camera']
+    K, P_r = cam['K'], cam['P_right']
+    H, W = truth['depth'].shape
+    ok = truth['valid'] & ~truth['occlusion']
+    vs, us = np.nonzero(ok)
+    rng = np.random.default_rng(seed)
+    pick = rng.permutation(len(us))
+    errs = []
+    for i in pick:
+        u, v = us[i], vs[i]
+        Z = float(truth['depth'][v, u])
+        X = Z * np.linalg.solve(K, [u, v, 1.0])
+        x = P_r @ np.append(X, 1.0)
+        ur, vr = x[0] / x[2], x[1] / x[2]
+        u0, v0 = int(np.floor(ur)), int(round(vr))
+        cols, rows = np.arange(u0 - 1, u0 + 3), np.arange(v0 - 1, v0 + 2)
+        if cols[0] < 0 or cols[-1] >= W or rows[0] < 0 or rows[-1] >= H:
+            continue
+        oid = truth['object_id_right'][np.ix_(rows, cols)]
+        fid = truth['face_id_right'][np.ix_(rows, cols)]
+        if np.any(oid != truth['object_id'][v, u]) or np.any(fid != truth['face_id'][v, u]):
+            continue  # the neighbourhood crosses a face boundary: no local affine model
+        # Texture coordinates are a smooth (projective) function of the pixel on a face: fit
+        # it locally and solve for the right pixel carrying the left pixel's coordinates.
+        gu, gv = np.meshgrid(cols, rows)
+        A = np.column_stack([gu.ravel(), gv.ravel(), np.ones(gu.size)])
+        tc = truth['texcoords_right'][np.ix_(rows, cols)].reshape(-1, 2).astype(np.float64)
+        coef, *_ = np.linalg.lstsq(A, tc, rcond=None)
+        q = np.linalg.solve(coef[:2].T, truth['texcoords'][v, u].astype(np.float64) - coef[2])
+        errs.append(np.hypot(q[0] - ur, q[1] - vr))
+        if len(errs) >= n:
+            break
+    return np.array(errs)

@@ -1,4 +1,5 @@
-"""Built-in scenes: object poses per frame, deterministic by seed (pure numpy).
+"""
+Built-in scenes: object poses per frame, deterministic by seed (pure numpy).
 
 World frame: the table top is the plane z = 0, +z up (metres). Every scene owns a fixed left
 camera pose ``T_world_camera`` (optical frame, from :func:`look_at`) and gives, per frame,
@@ -62,7 +63,8 @@ def _smooth(s: float) -> float:
 
 @dataclass
 class Scene:
-    """A built-in scene.
+    """
+    A built-in scene.
 
     :ivar name: scene name (one of ``SCENES``).
     :ivar objects: model names in render order (``object_id`` order of the truth).
@@ -276,7 +278,8 @@ def _primitives(seed: int) -> Scene:
 
 
 def make_scene(name: str, seed: int = 0) -> Scene:
-    """Build a scene by name.
+    """
+    Build a scene by name.
 
     :raises ValueError: for an unknown scene name (the message lists the known ones).
     """

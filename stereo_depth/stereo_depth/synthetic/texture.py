@@ -1,4 +1,5 @@
-"""Procedural surface texture fixed to each object (pure numpy + OpenCV).
+"""
+Procedural surface texture fixed to each object (pure numpy + OpenCV).
 
 Every polygon face gets a 2D chart: an orthonormal in-plane basis (e1, e2) and a random texel
 offset. A surface point X (object frame, metres) of face f has texture coordinates
@@ -18,6 +19,7 @@ from typing import Tuple
 import numpy as np
 
 from stereo_manip_tools.mesh_io import PolygonMesh
+from stereo_manip_tools.transforms import perpendicular_basis
 
 __all__ = ['make_noise_tile', 'face_charts', 'triangle_corner_texcoords']
 
@@ -26,7 +28,8 @@ __all__ = ['make_noise_tile', 'face_charts', 'triangle_corner_texcoords']
 def make_noise_tile(seed: int, size: int = 1024,
                     sigmas: Tuple[float, ...] = (1.5, 4.0, 12.0),
                     weights: Tuple[float, ...] = (0.45, 0.35, 0.2)) -> np.ndarray:
-    """Seamless (wrap-around) band-limited noise tile with values in [0, 1], float32 (size, size).
+    """
+    Seamless (wrap-around) band-limited noise tile with values in [0, 1], float32 (size, size).
 
     Cached per arguments (treat the result as read-only). Sum of Gaussian-blurred white noise
     at several scales (sigmas in texels), each normalised to
@@ -48,7 +51,8 @@ def make_noise_tile(seed: int, size: int = 1024,
 
 def face_charts(mesh: PolygonMesh, rng: np.random.Generator, tile_size: int,
                 texel_size: float) -> Tuple[np.ndarray, np.ndarray]:
-    """Per-face affine chart: matrix A_f (2, 3) and offset b_f (2,) with (s, t) = A_f X + b_f.
+    """
+    Per-face affine chart: matrix A_f (2, 3) and offset b_f (2,) with (s, t) = A_f X + b_f.
 
     :param texel_size: size of one texel on the surface [m].
     """
@@ -56,10 +60,7 @@ def face_charts(mesh: PolygonMesh, rng: np.random.Generator, tile_size: int,
     A = np.zeros((len(mesh.faces), 2, 3))
     b = np.zeros((len(mesh.faces), 2))
     for i, (f, n) in enumerate(zip(mesh.faces, normals)):
-        ref = np.eye(3)[int(np.argmin(np.abs(n)))]
-        e1 = np.cross(n, ref)
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
+        e1, e2 = perpendicular_basis(n)
         o = mesh.vertices[f[0]]
         A[i, 0], A[i, 1] = e1 / texel_size, e2 / texel_size
         b[i] = -A[i] @ o + rng.uniform(0, tile_size, 2)
