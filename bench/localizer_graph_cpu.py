@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""The localiser node's per-cloud work in the live graphs, in-process: CPU per cloud and ADD-S.
+"""
+The localiser node's per-cloud work in the live graphs, in-process: CPU per cloud and ADD-S.
 
 For each scene (``revolute_pair``: link_base + link_arm; ``primitives``: cube + torus;
 ``peg_in_hole``: peg + static hole_block) the stereo clouds the live graph's stereo node
@@ -68,8 +69,12 @@ def spread(values) -> Dict[str, float]:
 
 
 def camera_frames(n_scene: int, count: int, step: int = 3) -> List[int]:
-    """Scene frame indices of ``count`` camera frames, ``step`` apart, played back and forth
-    (the synthetic camera's ``playback='bounce'``)."""
+    """
+    Return the scene frame indices of ``count`` camera frames.
+
+    Scene frame indices of ``count`` camera frames, ``step`` apart, played back and forth
+    (the synthetic camera's ``playback='bounce'``).
+    """
     period = 2 * (n_scene - 1)
     out = []
     for i in range(count):
@@ -79,8 +84,12 @@ def camera_frames(n_scene: int, count: int, step: int = 3) -> List[int]:
 
 
 def stereo_clouds(scene: str, frames: List[int]) -> List[Dict[str, Any]]:
-    """(points float32 (N, 3), truth poses) of each frame, as the graph's stereo node makes
-    them (cached on disk: rendering and matching cost seconds per frame)."""
+    """
+    Return the stereo cloud and truth poses of each frame.
+
+    (points float32 (N, 3), truth poses) of each frame, as the graph's stereo node makes
+    them (cached on disk: rendering and matching cost seconds per frame).
+    """
     from stereo_depth.pipeline import cloud_points, compute_disparity, disparity_to_depth
     from stereo_depth.synthetic import render
     from stereo_manip_bringup.demo import SCENE_DISPARITY_BANDS
@@ -106,8 +115,12 @@ def stereo_clouds(scene: str, frames: List[int]) -> List[Dict[str, Any]]:
 
 
 def open3d_track_icp(model, near_points, start, settings):
-    """The peer: main's tracking ICP before this branch (Open3D's ``registration_icp``, Tukey
-    point-to-plane, the same two stages and stopping criteria)."""
+    """
+    Track with the peer's ICP.
+
+    The peer: main's tracking ICP before this branch (Open3D's ``registration_icp``, Tukey
+    point-to-plane, the same two stages and stopping criteria).
+    """
     import open3d as o3d
 
     from object_localizer.tracking import _visible_target
@@ -136,13 +149,16 @@ def open3d_track_icp(model, near_points, start, settings):
 
 
 def _all_finite(self, pose, model_points, margin=0.0):
-    """The peer's crop for objects/<name>/cloud: the whole cloud."""
+    """Crop as the peer does for objects/<name>/cloud: the whole cloud."""
     return self.points[np.all(np.isfinite(self.points), axis=1)].astype(np.float64)
 
 
 def run_scene(scene: str, n_frames: int, skip: int, peer: bool = False) -> Dict[str, Any]:
-    """Feed the scene's clouds to an in-process localiser node (rclpy initialised); ``peer``:
-    with main's tracking ICP and cloud crop (:func:`open3d_track_icp`)."""
+    """
+    Feed the scene's clouds to an in-process localiser node (rclpy initialised).
+
+    ``peer``: with main's tracking ICP and cloud crop (:func:`open3d_track_icp`).
+    """
     import object_localizer.tracking as tracking
     saved = tracking.track_icp, tracking.SceneCloud.around_box
     if peer:

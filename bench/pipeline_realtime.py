@@ -292,8 +292,12 @@ def cpu_per_frame(run: Dict[str, Any]) -> Dict[str, float]:
 
 
 def cpu_per_camera_frame(run: Dict[str, Any]) -> Dict[str, float]:
-    """CPU [ms] of every node per camera frame of the window, and their sum (the graph's
-    work per frame: below 2 x the frame interval it fits on 2 cores, whatever the load)."""
+    """
+    Return the CPU [ms] of every node per camera frame, and their sum.
+
+    CPU [ms] of every node per camera frame of the window, and their sum (the graph's
+    work per frame: below 2 x the frame interval it fits on 2 cores, whatever the load).
+    """
     n = run.get('camera_frames', 0)
     if not n:
         return {}

@@ -169,8 +169,12 @@ class FrameCandidates:
                       key=lambda h: h.score if np.isfinite(h.score) else float('inf'))
 
     def hypothesis(self, state: State) -> Hypothesis:
-        """The frame's hypothesis for ``state`` (a set of its groups); one not scored in the
-        search is built unscored (``chi2``, ``score`` nan, ``rank`` -1)."""
+        """
+        Return the frame's hypothesis for ``state``.
+
+        ``state`` is a set of the frame's groups; a hypothesis not scored in the search is
+        built unscored (``chi2``, ``score`` nan, ``rank`` -1).
+        """
         h = self.hypotheses.get(state)
         if h is not None:
             return h
@@ -187,7 +191,7 @@ AMBIGUITY_FIT = 1.0
 
 
 def common_state(states: Sequence[State]) -> State:
-    """The groups common to every state (the relation right under any of them)."""
+    """Return the groups common to every state (the relation right under any of them)."""
     out = frozenset(states[0])
     for s in states[1:]:
         out &= s
@@ -507,19 +511,21 @@ class RelationTracker:
         return fc.hypotheses[best_state], fc
 
     def backtrack(self) -> List[Hypothesis]:
-        """Least-cost relation sequence over the recorded frames (offline Viterbi).
+        """
+        Find the least-cost relation sequence over the recorded frames (offline Viterbi).
 
         With ``ambiguity_margin`` > 0, each frame's min-marginals (the least total cost of a
         sequence through a relation at that frame: forward + backward cost) are computed; the
         groups common to the Viterbi relation and every relation whose min-marginal is within
         the margin of it are enforced (at a contact change whose frame the evidence does not
-        pin down, only what holds before and after it)."""
+        pin down, only what holds before and after it).
+        """
         if not self.history:
             return []
         sw = self.recognizer.options.switch_cost
         margin = self.recognizer.options.ambiguity_margin
         # backward costs over the recorded beams
-        betas: List[Dict[State, float]] = [dict() for _ in self.history]
+        betas: List[Dict[State, float]] = [{} for _ in self.history]
         betas[-1] = {s: 0.0 for s in self.history[-1][1]}
         for k in range(len(self.history) - 2, -1, -1):
             fc1, table1 = self.history[k + 1]

@@ -69,9 +69,13 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
     tol = max(kwargs.get('residual_tolerance', 1e-9), 1e-6)
 
     def push_out(base: Tuple[ContactPair, ...]) -> Optional[CorrectionResult]:
-        """Non-linear step only (the feasible pose nearest the observation) on ``base`` plus
+        """
+        Push the pose out with the non-linear step only.
+
+        Non-linear step only (the feasible pose nearest the observation) on ``base`` plus
         the pool's pairs that penetrate; pairs found penetrating at the attempt's pose are
-        added and the attempt repeated."""
+        added and the attempt repeated.
+        """
         if not frame.pool:
             return None
         sel = np.array([p in base for p in frame.pool], dtype=bool)

@@ -196,9 +196,13 @@ def test_penetrating_observation_is_never_passed_through(models):
 
 
 def test_free_choice_on_a_penetrating_observation_is_pushed_out_minimally(models):
-    """The peg flat on hole_block's top, observed 0.5 mm into it (and tilted 0.17 deg) with the
+    """
+    Check that a free choice on a penetrating observation is pushed out minimally.
+
+    The peg flat on hole_block's top, observed 0.5 mm into it (and tilted 0.17 deg) with the
     free relation chosen: the push-out comes before any other relation of the frame and only
-    lifts the peg onto the top (its horizontal position, free on the top face, kept)."""
+    lifts the peg onto the top (its horizontal position, free on the top face, kept).
+    """
     peg, block = models['peg'], models['hole_block']
     T = make_transform(rotation_about_axis(np.array([1.0, 0.0, 0.0]), 0.003),
                        [0.05, 0.004, -0.0005])
@@ -219,12 +223,16 @@ def test_free_choice_on_a_penetrating_observation_is_pushed_out_minimally(models
 
 
 def test_ambiguous_contact_change_enforces_only_the_common_contacts(models):
-    """The T-peg held inserted, then pulled up: the first pulled-out observation (1.5 mm up,
+    """
+    Check that an ambiguous contact change enforces only the common contacts.
+
+    The T-peg held inserted, then pulled up: the first pulled-out observation (1.5 mm up,
     1.5 times the stated 1 mm noise) fits the walls-only relation better but the shoulders'
     extra constraints win the score. Offline, only the contacts common to both (the stem
     walls) are enforced there, so the pull-out direction (free under the true relation) is
     not changed; without the rule the shoulders are enforced and the peg is pulled 1.5 mm
-    down."""
+    down.
+    """
     peg, block = models['t_peg'], models['t_slot_block']
     zs = [0.0] * 8 + [0.0015, 0.004, 0.008, 0.012, 0.016, 0.02]
     To = np.array([make_transform(np.eye(3), [0.0, 0.0, z]) for z in zs])

@@ -199,7 +199,7 @@ class JointEstimatorNode(Node):
                         "frame's own marker-pose noise (depth, tilt; from the corners' geometry)"))
         self.declare_parameter('marker_side', 0.0, _float(
             "the square marker's side [m] for the per-frame noise model; 0: estimated from "
-            "the track", 0.0, 10.0))
+            'the track', 0.0, 10.0))
         self.declare_parameter('stamp_reset_threshold', 0.5, _float(
             'a stamp this far behind the newest [s] is a source restart: the window is cleared',
             0.0, 1e6))

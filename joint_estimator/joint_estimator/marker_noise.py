@@ -1,4 +1,5 @@
-"""Per-frame pose noise of a square marker seen by one camera, and the revolute fit weighted by it.
+"""
+Per-frame pose noise of a square marker seen by one camera, and the revolute fit weighted by it.
 
 A square marker's pose comes from the images of its four corners. To first order its
 covariance is ``sigma_n^2 (J^T J)^-1`` with ``J`` (8 x 6) the Jacobian of the corners'
@@ -27,12 +28,11 @@ from __future__ import annotations
 
 from typing import Optional
 
-import numpy as np
-
 from joint_estimator.common import (
     minimal_rotations_onto, perpendicular_basis, rotation_vectors)
 from joint_estimator.refine import levenberg_marquardt
 from joint_estimator.revolute import RevoluteModel
+import numpy as np
 
 __all__ = ['marker_corners', 'marker_information', 'predicted_ray_ratio',
            'estimate_marker_side', 'weighted_angles', 'refine_revolute_marker',
@@ -52,8 +52,11 @@ def _skew_n(v: np.ndarray) -> np.ndarray:
 
 
 def marker_corners(side: float, normal_axis: int = 2) -> np.ndarray:
-    """(4, 3) corners [m] of a square marker of ``side`` in its own frame (centred, in the
-    plane normal to axis ``normal_axis``)."""
+    """
+    Return the (4, 3) corners [m] of a square marker of ``side`` in its own frame.
+
+    The corners are centred, in the plane normal to axis ``normal_axis``.
+    """
     h = side / 2.0
     uv = np.array([[-h, h], [h, h], [h, -h], [-h, -h]])
     C = np.zeros((4, 3))
@@ -63,7 +66,8 @@ def marker_corners(side: float, normal_axis: int = 2) -> np.ndarray:
 
 def marker_information(R: np.ndarray, p: np.ndarray, side: float,
                        normal_axis: int = 2) -> np.ndarray:
-    """Per-frame information ``J^T J`` (N, 6, 6) of a marker pose in normalised image units.
+    """
+    Compute the per-frame information ``J^T J`` (N, 6, 6) of a marker pose, normalised image units.
 
     ``J`` (8 x 6) is the Jacobian of the four corners' normalised image coordinates with
     respect to ``(w, dp)`` (rotation [rad] and position [m] perturbations in the camera frame);
@@ -91,9 +95,13 @@ def marker_information(R: np.ndarray, p: np.ndarray, side: float,
 
 def predicted_ray_ratio(R: np.ndarray, p: np.ndarray, side: float,
                         normal_axis: int = 2) -> float:
-    """Median over the frames of the predicted position noise along the line of sight over the
+    """
+    Return the predicted ratio of position noise along the line of sight to across it.
+
+    Median over the frames of the predicted position noise along the line of sight over the
     noise across it (per axis), for a marker of ``side`` [m] at poses ``R`` (N, 3, 3), ``p``
-    (N, 3) [m]."""
+    (N, 3) [m].
+    """
     cov = np.linalg.pinv(marker_information(R, p, side, normal_axis), hermitian=True)[:, 3:, 3:]
     v = p / np.linalg.norm(p, axis=1)[:, None]
     along = np.einsum('ni,nij,nj->n', v, cov, v)
@@ -103,10 +111,14 @@ def predicted_ray_ratio(R: np.ndarray, p: np.ndarray, side: float,
 
 def estimate_marker_side(R: np.ndarray, p: np.ndarray, ray_ratio: float,
                          normal_axis: int = 2, iterations: int = 4) -> float:
-    """Marker side [m] whose predicted depth / lateral noise ratio
+    """
+    Estimate the marker side [m] from the measured line-of-sight noise ratio.
+
+    Marker side [m] whose predicted depth / lateral noise ratio
     (:func:`predicted_ray_ratio`) equals the measured ``ray_ratio`` (the ratio is ~ inversely
     proportional to the side: fixed-point iterations), clamped to 0.5-100 % of the median
-    distance."""
+    distance.
+    """
     z = float(np.median(np.linalg.norm(p, axis=1)))
     side = 0.05 * z
     for _ in range(iterations):
@@ -124,9 +136,13 @@ def _residuals(model: RevoluteModel, q: np.ndarray, R: np.ndarray, p: np.ndarray
 
 def weighted_angles(model: RevoluteModel, R: np.ndarray, p: np.ndarray, W: np.ndarray,
                     q0: np.ndarray, iterations: int = 4) -> np.ndarray:
-    """Joint angles (N,) [rad] minimising each frame's ``r^T W r`` (``r``: residual of the
+    """
+    Compute the joint angles (N,) [rad] minimising each frame's weighted residual.
+
+    Joint angles (N,) [rad] minimising each frame's ``r^T W r`` (``r``: residual of the
     pose about the joint at the angle; ``W`` (N, 6, 6) the frame's information), by
-    Gauss-Newton steps from ``q0``."""
+    Gauss-Newton steps from ``q0``.
+    """
     q = np.asarray(q0, dtype=float).copy()
     ax = model.axis_in_b
     for _ in range(iterations):
@@ -157,7 +173,8 @@ def _build(model: RevoluteModel):
 def refine_revolute_marker(model: RevoluteModel, R: np.ndarray, p: np.ndarray,
                            side: float, normal_axis: int = 2, rounds: int = 3,
                            q0: Optional[np.ndarray] = None) -> dict:
-    """Maximum-likelihood revolute joint for marker poses with per-frame information.
+    """
+    Fit the maximum-likelihood revolute joint for marker poses with per-frame information.
 
     Minimises ``sum_t r_t^T W_t r_t`` over the joint parameters (Levenberg-Marquardt over the
     axis directions, ``^B c`` across the axis and ``^A c``; the per-frame angles projected out

@@ -364,7 +364,10 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
 
 def _marker_refit(fit: JointFit, Rc: np.ndarray, pc: np.ndarray, ray_ratio: float,
                   side: Optional[float], normal_axis: int, correction: str):
-    """The revolute ``fit`` refitted on its inliers (same twins) with per-frame marker
+    """
+    Refit the revolute ``fit`` with per-frame marker information.
+
+    The revolute ``fit`` is refitted on its inliers (same twins) with per-frame marker
     information (:func:`joint_estimator.marker_noise.refine_revolute_marker`).
 
     The refit is used only when the per-frame marker model explains the inliers' residuals

@@ -1,9 +1,6 @@
 """Per-frame marker-pose noise and the revolute fit weighted by it, against ground truth."""
 
 import cv2
-import numpy as np
-from scipy.spatial.transform import Rotation
-
 from joint_estimator.common import compose_track, JointType, rotation_vectors
 from joint_estimator.common import rotations_about_axis
 from joint_estimator.marker_noise import (
@@ -11,6 +8,8 @@ from joint_estimator.marker_noise import (
 from joint_estimator.robust import line_of_sight_ratio
 from joint_estimator.selection import estimate_joint
 from joint_estimator.synthetic import add_noise, add_outliers, random_joint_motion
+import numpy as np
+from scipy.spatial.transform import Rotation
 
 F_PX = 1400.0
 K = np.array([[F_PX, 0.0, 960.0], [0.0, F_PX, 540.0], [0.0, 0.0, 1.0]])
@@ -30,9 +29,13 @@ def _line_distance_mm(c_true, l_true, anchor, c, u, half=0.1):
 
 
 def _ippe_door(seed, n=300, side=0.07, sigma_px=0.8, distance=1.2):
-    """A door (hinge ~ camera y, ``distance`` ahead) with a marker seen through OpenCV's
+    """
+    Simulate a door with a marker seen through OpenCV's IPPE_SQUARE solver.
+
+    A door (hinge ~ camera y, ``distance`` ahead) with a marker seen through OpenCV's
     IPPE_SQUARE solver; returns truth, the solver's poses (``detected``) and the solution
-    nearest the truth per frame (``unflipped``: the pose noise without the flips)."""
+    nearest the truth per frame (``unflipped``: the pose noise without the flips).
+    """
     rng = np.random.default_rng(seed)
     axis = np.array([0.0, 1.0, 0.0])
     hinge = np.array([rng.uniform(-0.2, 0.2), 0.0, distance])
@@ -160,9 +163,13 @@ def test_generic_tracks_keep_the_isotropic_model():
 
 
 def test_small_track_with_outliers_is_not_taken_over_by_twins():
-    """N = 20, 30 deg, 20 % outliers (the accuracy bench's hardest cell, its seeds): a few
+    """
+    Check that a small track with outliers is not taken over by twins.
+
+    N = 20, 30 deg, 20 % outliers (the accuracy bench's hardest cell, its seeds): a few
     seeds used to fit twins of most frames (78 deg off) or the per-frame marker model on a
-    generic track (35 deg off)."""
+    generic track (35 deg off).
+    """
     sp, sr, n = 0.001, np.deg2rad(1.0), 20
     worst, rot_fit, rot_raw = 0.0, [], []
     for seed in range(50):
