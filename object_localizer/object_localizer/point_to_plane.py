@@ -1,4 +1,5 @@
-"""Point-to-plane ICP with a Tukey M-estimator, compiled (numba): the tracker's inner loop.
+"""
+Point-to-plane ICP with a Tukey M-estimator, compiled (numba): the tracker's inner loop.
 
 The same iteration as Open3D's ``registration_icp`` with ``TransformationEstimationPointToPlane
 (TukeyLoss(k))`` (which the tracker used before), at a fraction of its cost for the tracker's
@@ -58,8 +59,12 @@ def _build_grid(P, cell):  # pragma: no cover - numba
 @numba.njit(cache=True)
 def _nearest(q0, q1, q2, P, lo, dims, start, order, cell, reach,
              limit):  # pragma: no cover - numba
-    """Index of the nearest point of P within ``reach`` of q (-1: none) and its squared
-    distance; -2 when ``limit`` shells of cells do not settle it."""
+    """
+    Find the nearest point of P within ``reach`` of q.
+
+    Index of the nearest point of P within ``reach`` of q (-1: none) and its squared
+    distance; -2 when ``limit`` shells of cells do not settle it.
+    """
     cx = int(np.floor((q0 - lo[0]) / cell))
     cy = int(np.floor((q1 - lo[1]) / cell))
     cz = int(np.floor((q2 - lo[2]) / cell))
@@ -105,14 +110,18 @@ def _nearest(q0, q1, q2, P, lo, dims, start, order, cell, reach,
 
 @numba.njit(cache=True)
 def _correspond(S, P, fine, coarse, reach, idx, far, moved):  # pragma: no cover - numba
-    """Nearest target point within ``reach`` of every source point: in the fine grid's
+    """
+    Find the nearest target point within ``reach`` of every source point.
+
+    Nearest target point within ``reach`` of every source point: in the fine grid's
     3x3x3 cells around the point when that settles it (points on the surface), else in the
     coarse grid (points farther away); fitness, inlier RMS, count.
 
     ``far[i]``: a lower bound of point i's distance to the target when last searched (0:
     unknown), ``moved[i]``: how far it has moved since. A point still farther than ``reach``
     by that bound is not searched (no correspondence, exactly); the coarse search looks
-    ``reach`` beyond ``reach`` to bound the distance of the points it does not match."""
+    ``reach`` beyond ``reach`` to bound the distance of the points it does not match.
+    """
     lo, dims, start, order, cell = fine
     clo, cdims, cstart, corder, ccell = coarse
     count = 0
@@ -145,8 +154,12 @@ def _correspond(S, P, fine, coarse, reach, idx, far, moved):  # pragma: no cover
 
 @numba.njit(cache=True)
 def _solve6(A, b):  # pragma: no cover - numba
-    """x with A x = b (6x6, Gaussian elimination with partial pivoting); ok False if
-    singular."""
+    """
+    Solve A x = b for x.
+
+    x with A x = b (6x6, Gaussian elimination with partial pivoting); ok False if
+    singular.
+    """
     M = A.copy()
     x = b.copy()
     for c in range(6):
@@ -280,7 +293,8 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: n
                        tolerance: float = 1e-6, min_step: float = 1e-6,
                        cell: float = 0.0, fine_cell: float = 0.002
                        ) -> Tuple[np.ndarray, int, float, float]:
-    """Align ``source`` (N, 3) [m] to ``target`` (M, 3) with unit ``target_normals`` (M, 3).
+    """
+    Align ``source`` (N, 3) [m] to ``target`` (M, 3) with unit ``target_normals`` (M, 3).
 
     :param reach: largest correspondence distance [m].
     :param loss_scale: Tukey scale k [m] of the point-to-plane residual.

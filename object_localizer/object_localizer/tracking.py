@@ -339,10 +339,14 @@ class SceneCloud:
 
     def around_box(self, pose: np.ndarray, model_points: np.ndarray, margin: float = 0.0
                    ) -> np.ndarray:
-        """Points (M, 3) float64 that may lie in the bounding box of ``model_points`` (model
+        """
+        Return the points that may lie in the grown bounding box of the model.
+
+        Points (M, 3) float64 that may lie in the bounding box of ``model_points`` (model
         frame [m]) grown by ``margin`` [m] at ``pose`` (4x4 model -> sensor): those on rays
         through the box's circumscribed sphere (:meth:`cone`; every finite point when the
-        sphere reaches the sensor). A cheap superset for cropping to the box."""
+        sphere reaches the sensor). A cheap superset for cropping to the box.
+        """
         lo = np.min(model_points, axis=0) - margin
         hi = np.max(model_points, axis=0) + margin
         centre = pose[:3, :3] @ (0.5 * (lo + hi)) + pose[:3, 3]
@@ -408,7 +412,10 @@ EDGE_GAP = 2
 
 def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
                              pixel: float, settings: TrackerSettings) -> float:
-    """Share of the model's silhouette (every sample facing the sensor, at ``pose``) where the
+    """
+    Measure the share of the model's silhouette that shows a depth edge.
+
+    Share of the model's silhouette (every sample facing the sensor, at ``pose``) where the
     observed depth ``settings.edge_gap`` outside (at least ``EDGE_GAP`` pixels) jumps behind
     it by more than
     ``settings.edge_threshold`` or is missing (:func:`~object_localizer.verification.
@@ -567,8 +574,12 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
 
 
 def _visible_target(model: TrackingModel, pose: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """The model samples (M, 3) [m, sensor frame] facing the sensor at ``pose``, and their unit
-    normals (M, 3)."""
+    """
+    Return the model samples facing the sensor at ``pose``.
+
+    The model samples (M, 3) [m, sensor frame] facing the sensor at ``pose``, and their unit
+    normals (M, 3).
+    """
     R, t = pose[:3, :3], pose[:3, 3]
     P = model.points @ R.T + t
     N = model.normals @ R.T

@@ -375,7 +375,10 @@ def _edges(model, observed, thr, gap):  # pragma: no cover - numba
 
 def silhouette_edges(model_depth: np.ndarray, observed_depth: np.ndarray, threshold: float,
                      gap: int = 2) -> Tuple[int, int]:
-    """Depth-edge evidence along a rendered model's silhouette: the check that the model is an
+    """
+    Count depth-edge evidence along a rendered model's silhouette.
+
+    Depth-edge evidence along a rendered model's silhouette: the check that the model is an
     object of its own and not a piece of a larger observed surface.
 
     For every model pixel with a 4-neighbour ``gap`` pixels away that is off the model, the

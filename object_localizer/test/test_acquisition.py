@@ -184,9 +184,13 @@ def test_localize_uses_acquisition_for_its_global_search(meshes, symmetries):
 
 
 def _lying_on_a_table(mesh, R_world, xy, rng, noise=0.001):
-    """A stereo-like scene: ``mesh`` turned by ``R_world`` resting on a table (world z = 0),
+    """
+    Make a stereo-like scene of ``mesh`` resting on a table.
+
+    A stereo-like scene: ``mesh`` turned by ``R_world`` resting on a table (world z = 0),
     seen from 0.6 m at 50 deg elevation; table samples under the object removed (hidden),
-    1 mm noise. Returns the cloud (optical frame) and the true pose model -> optical."""
+    1 mm noise. Returns the cloud (optical frame) and the true pose model -> optical.
+    """
     V = np.asarray(mesh.vertices) @ R_world.T
     T_w = make_transform(R_world, [xy[0], xy[1], -V[:, 2].min()])
     elev = np.radians(50.0)
@@ -211,8 +215,12 @@ def _lying_on_a_table(mesh, R_world, xy, rng, noise=0.001):
 
 @pytest.mark.parametrize('name', ['ball_link', 'slider_base'])
 def test_acquire_thin_bar_and_rail_lying_on_a_table(name):
-    """The thin bar (3 cm x 15 cm) and the low rail (30 x 6 x 2 cm), lying on a table seen
-    obliquely (1 mm noise), turned about the vertical: found within 2 mm / 2 deg."""
+    """
+    Acquire the thin bar and the low rail lying on a table.
+
+    The thin bar (3 cm x 15 cm) and the low rail (30 x 6 x 2 cm), lying on a table seen
+    obliquely (1 mm noise), turned about the vertical: found within 2 mm / 2 deg.
+    """
     mesh = load_obj(find_model(name))
     s = sample_model_surface(mesh, 0.003, max_samples=8000)
     sym = find_symmetries(s.points, s.spacing)
@@ -229,8 +237,12 @@ def test_acquire_thin_bar_and_rail_lying_on_a_table(name):
 
 
 def test_ppf_references_are_bounded_on_huge_clouds(meshes, monkeypatch):
-    """Bounded work per cloud: a cloud of 100 000 random points gets at most max_references
-    PPF reference points (a longer stride); an object-sized cloud keeps Drost's stride 5."""
+    """
+    Bound the work per cloud.
+
+    Bounded work per cloud: a cloud of 100 000 random points gets at most max_references
+    PPF reference points (a longer stride); an object-sized cloud keeps Drost's stride 5.
+    """
     import object_localizer.acquisition as acquisition
     model = prepare_acquisition_model(meshes['link_arm'])
     seen = []

@@ -1,16 +1,15 @@
 """The compiled point-to-plane ICP: exact correspondences, Open3D's iteration, recovered motion."""
 
 import numpy as np
+from object_localizer import point_to_plane as pp
 import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
-
-from object_localizer import point_to_plane as pp
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 
 def _box_surface(rng, n=4000, size=(0.08, 0.04, 0.03)):
-    """Samples (n, 3) [m] of the faces of a box at 0.5 m with their outward normals."""
+    """Sample (n, 3) [m] points of the faces of a box at 0.5 m with their outward normals."""
     half = np.array(size) / 2
     P, N = [], []
     for axis in range(3):

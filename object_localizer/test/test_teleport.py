@@ -1,4 +1,5 @@
-"""The scene loop of the soak: the peg teleports and must come back right or not at all.
+"""
+The scene loop of the soak: the peg teleports and must come back right or not at all.
 
 The synthetic ``peg_in_hole`` scene, looping, jumps from its last frame (the peg inserted in the
 hole) to its first (the peg 10 cm above the block, 18 cm away). Its stereo clouds are made the
@@ -16,11 +17,10 @@ rejects it.
 from dataclasses import replace
 
 import numpy as np
-import pytest
-
 from object_localizer.evaluation import add_s
 from object_localizer.tracking import check_pose, make_acquirer, ObjectTracker, \
     prepare_tracking_model, SceneCloud, TrackerSettings, TrackState
+import pytest
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform
 
@@ -29,8 +29,12 @@ LAST_FRAME = 224       # the scene's last frame; the next one is frame 0
 
 
 def stereo_cloud(frame):
-    """(N, 3) float32 cloud [m] of a ``peg_in_hole`` frame before a wall at 1.25 m, as the live
-    graph's localizer reads it, and the truth ``{name: 4x4}``."""
+    """
+    Make the stereo cloud of a ``peg_in_hole`` frame before a wall.
+
+    (N, 3) float32 cloud [m] of a ``peg_in_hole`` frame before a wall at 1.25 m, as the live
+    graph's localizer reads it, and the truth ``{name: 4x4}``.
+    """
     from stereo_depth.pipeline import cloud_points, compute_disparity, disparity_to_depth
     from stereo_depth.synthetic import render
     from stereo_manip_tools.conversions import read_pointcloud2, xyz_to_pointcloud2
@@ -50,7 +54,7 @@ def stereo_cloud(frame):
 
 
 def band_limit_pose(cloud):
-    """The peg lying in the wall (z = 1.25 m), its +x face towards the camera."""
+    """Return the peg lying in the wall (z = 1.25 m), its +x face towards the camera."""
     far = cloud[np.isfinite(cloud[:, 2]) & (cloud[:, 2] > 1.2)]
     assert len(far) > 2000, 'no wall in this cloud'
     R = np.column_stack([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
@@ -83,8 +87,12 @@ def _update(trackers, cloud, stamp_ns):
 
 
 def test_the_band_limit_pose_is_rejected_by_the_silhouette_test_alone(loop):
-    """The truth passes the check; the wrong pose 0.84 m away passes every other check (inlier
-    fraction, residual, free space) and fails only the silhouette edge test."""
+    """
+    Reject the band-limit pose by the silhouette test alone.
+
+    The truth passes the check; the wrong pose 0.84 m away passes every other check (inlier
+    fraction, residual, free space) and fails only the silhouette edge test.
+    """
     models, _, (cloud, truth) = loop
     peg = models['peg']
     scene = SceneCloud(cloud)
@@ -108,9 +116,13 @@ def test_the_band_limit_pose_is_rejected_by_the_silhouette_test_alone(loop):
 
 
 def test_after_the_loop_a_wrong_candidate_is_never_published(loop):
-    """The tracked peg teleports at the scene loop. The acquisition's first answer is the
+    """
+    Never publish a wrong candidate after the loop.
+
+    The tracked peg teleports at the scene loop. The acquisition's first answer is the
     wall pose: nothing is published, the track is LOST and says why; on the next cloud
-    the acquisition offers the wrong pose and the right one: the right one is published."""
+    the acquisition offers the wrong pose and the right one: the right one is published.
+    """
     models, (cloud_a, truth_a), (cloud_b, truth_b) = loop
     offered = []
     trackers = _trackers(models, truth_a, lambda m, p, seed: list(offered))
@@ -132,9 +144,13 @@ def test_after_the_loop_a_wrong_candidate_is_never_published(loop):
 
 
 def test_scene_loop_with_the_global_acquisition_gives_the_truth_or_nothing(loop):
-    """The node's own acquisition (PPF voting) on the cloud after the loop, with several seeds:
+    """
+    Give the truth or nothing with the global acquisition after the scene loop.
+
+    The node's own acquisition (PPF voting) on the cloud after the loop, with several seeds:
     every published peg pose is within 5 mm (ADD-S) of the truth; a cloud without a pose says
-    LOST (the pose is never wrong and silent)."""
+    LOST (the pose is never wrong and silent).
+    """
     models, (cloud_a, truth_a), (cloud_b, truth_b) = loop
     acquirer = make_acquirer('ppf')
     published = 0
@@ -155,9 +171,13 @@ def test_scene_loop_with_the_global_acquisition_gives_the_truth_or_nothing(loop)
 
 @pytest.mark.process
 def test_node_reports_the_wrong_pose_and_publishes_only_the_truth(ros_node, loop):
-    """object_localizer_node as a process, on the cloud after the loop, given the wall
+    """
+    Report the wrong pose and publish only the truth from the node.
+
+    object_localizer_node as a process, on the cloud after the loop, given the wall
     pose as the peg's hint (the pose the soak's localizer had): the status of the first cloud
-    says the hint was rejected and why; every pose the node publishes is the truth."""
+    says the hint was rejected and why; every pose the node publishes is the truth.
+    """
     from geometry_msgs.msg import PoseStamped
     from std_msgs.msg import Header
 

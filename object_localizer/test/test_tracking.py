@@ -262,8 +262,12 @@ def _origin_shift(from_model, to_model):
 
 
 def test_around_box_keeps_every_point_of_the_grown_box():
-    """The cheap crop for objects/<name>/cloud: the box segment taken from it equals the one
-    taken from the whole cloud (organised rows with NaN included)."""
+    """
+    Keep every point of the grown box in the cheap crop.
+
+    The cheap crop for objects/<name>/cloud: the box segment taken from it equals the one
+    taken from the whole cloud (organised rows with NaN included).
+    """
     from object_localizer.localization import segment_object_points
 
     rng = np.random.default_rng(5)

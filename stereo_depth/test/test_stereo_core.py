@@ -378,11 +378,15 @@ def test_min_disparity_searches_a_band_and_reports_full_disparities(method):
 
 
 def test_surfaces_beyond_the_band_are_unknown_not_flattened_onto_its_ends():
-    """The demo's band (48 .. 111 px) on a synthetic peg_in_hole frame: the background lies
+    """
+    Leave surfaces beyond the band unknown instead of flattening them onto its ends.
+
+    The demo's band (48 .. 111 px) on a synthetic peg_in_hole frame: the background lies
     farther than the band and the near table closer; clamped to the band's first or last
     candidate they became fake flat surfaces (18 % of the valid pixels, 41 501 of them exactly
     at 48 px = 1.25 m). Now no disparity lies at the band's ends, few valid pixels lack an
-    in-band truth, and the in-band pixels stay right."""
+    in-band truth, and the in-band pixels stay right.
+    """
     from stereo_depth.synthetic import render
     left, right, info = render('peg_in_hole', 0)
     truth = info['disparity']
