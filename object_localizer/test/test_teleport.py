@@ -21,6 +21,8 @@ from object_localizer.evaluation import add_s
 from object_localizer.tracking import check_pose, make_acquirer, ObjectTracker, \
     prepare_tracking_model, SceneCloud, TrackerSettings, TrackState
 import pytest
+from stereo_manip_tools.conversions import ns_to_stamp, pose_to_matrix, read_pointcloud2, \
+    xyz_to_pointcloud2
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform
 
@@ -37,7 +39,6 @@ def stereo_cloud(frame):
     """
     from stereo_depth.pipeline import cloud_points, compute_disparity, disparity_to_depth
     from stereo_depth.synthetic import render
-    from stereo_manip_tools.conversions import read_pointcloud2, xyz_to_pointcloud2
 
     left, right, truth = render('peg_in_hole', frame)
     cam = truth['camera']
@@ -182,7 +183,6 @@ def test_node_reports_the_wrong_pose_and_publishes_only_the_truth(ros_node, loop
     from std_msgs.msg import Header
 
     from stereo_manip_msgs.msg import TrackStatus
-    from stereo_manip_tools.conversions import ns_to_stamp, pose_to_matrix, xyz_to_pointcloud2
     from stereo_manip_tools.testing import spin_until, start_executable, wait_for_subscribers
     from stereo_manip_tools.transforms import quaternion_from_matrix
 
