@@ -407,7 +407,7 @@ def run_kill(rate: float, timeout: float, log, victims: Sequence[str] = ()) -> D
 # --- soak -------------------------------------------------------------------------------------
 
 def run_soak(rate: float, minutes: float, warmup_s: float, log) -> Dict[str, Any]:
-    graph = Graph(rate, keep_messages=('truth', 'corrected'))
+    graph = Graph(rate, keep_messages=('truth', 'pose', 'corrected'))
     rss: Dict[str, List[Tuple[float, float]]] = {}
     loads: List[Tuple[float, float]] = []
     try:
@@ -446,6 +446,19 @@ def run_soak(rate: float, minutes: float, warmup_s: float, log) -> Dict[str, Any
     out['corrected_add_s_mm'] = _stats([e * 1e3 for e in errs])
     out['corrected_wrong_fraction'] = (sum(e > WRONG_POSE_M for e in errs) / len(errs)
                                        if errs else float('nan'))
+    # where a wrong corrected pose came from: the localizer's pose of the same stamp, judged
+    raw_judge = PoseJudge(graph)     # its own cache: raw and corrected share their stamps
+    raw = {st: raw_judge.error(st, d) for st, d in graph.kept['pose']}
+    raw_errs = [e for e in raw.values() if e is not None]
+    out['raw_add_s_mm'] = _stats([e * 1e3 for e in raw_errs])
+    out['raw_wrong_fraction'] = (sum(e > WRONG_POSE_M for e in raw_errs) / len(raw_errs)
+                                 if raw_errs else float('nan'))
+    frame_of = {st: i for i, (st, _) in enumerate(graph.arrivals['truth'])}
+    out['wrong_corrected_frames'] = [
+        {'camera_frame_index': frame_of.get(st), 'corrected_add_s_mm': judge.errors[st] * 1e3,
+         'raw_add_s_mm': None if raw.get(st) is None else raw[st] * 1e3}
+        for st, _ in graph.kept['corrected']
+        if judge.errors.get(st) is not None and judge.errors[st] > WRONG_POSE_M]
     graph.kept.clear()
     out['loadavg_1min_samples'] = loads
     growth = {}
