@@ -110,6 +110,7 @@ def test_flipped_poses_are_repaired_not_dropped(flip_fraction):
     assert plain.best.outlier_indices.size >= 0.8 * big.sum()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('sp, sr_deg', [(0.0005, 0.5), (0.002, 1.5), (0.005, 3.0)])
 def test_noise_scales_are_estimated_and_the_type_follows_over_a_10x_range(sp, sr_deg):
     sr = np.deg2rad(sr_deg)
@@ -172,6 +173,7 @@ def test_coordinates_unwrapped_and_coverage_warns_about_a_partial_fit():
     assert 'WARNING' in est.status
 
 
+@pytest.mark.slow
 def test_axis_point_nearest_the_data_and_calibrated_uncertainty():
     ratios = []
     for seed in range(25):

@@ -9,6 +9,7 @@ import pytest
 SP, SR = 0.001, np.deg2rad(1.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('jt', list(JointType))
 def test_selection_picks_the_right_type_on_clean_data(jt):
     for seed in range(3):

@@ -150,6 +150,7 @@ def stereo_frame():
     return pts, cam, truth['poses']
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('seed', [0, 1, 2])
 def test_acquire_every_object_of_a_stereo_frame(meshes, symmetries, stereo_frame, seed):
     pts, cam, poses = stereo_frame
@@ -213,6 +214,7 @@ def _lying_on_a_table(mesh, R_world, xy, rng, noise=0.001):
     return cloud + rng.normal(scale=noise, size=cloud.shape), T
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('name', ['ball_link', 'slider_base'])
 def test_acquire_thin_bar_and_rail_lying_on_a_table(name):
     """
@@ -236,6 +238,7 @@ def test_acquire_thin_bar_and_rail_lying_on_a_table(name):
         assert e_t < 0.002 and e_r < np.radians(2.0), (name, yaw, e_t, np.degrees(e_r))
 
 
+@pytest.mark.slow
 def test_ppf_references_are_bounded_on_huge_clouds(meshes, monkeypatch):
     """
     Bound the work per cloud.
