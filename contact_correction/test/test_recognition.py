@@ -171,6 +171,30 @@ def test_temporal_model_keeps_the_contact_through_an_outlier(models):
     assert out[7].corrected and abs(out[7].T_moving[2, 3]) < 1e-9
 
 
+def test_online_safe_rule_releases_a_contact_being_pulled_off(models):
+    """
+    Inserted T-peg pulled straight up, 2.4 mm per frame (noise-free observations).
+
+    From the second lifted frame on, the online corrector keeps the observed height: the
+    relation still held by the hysteresis (bar on the shoulders) is ambiguous against the
+    lifted one (stem walls only), so only the common contacts are enforced. Without the rule
+    (ambiguity_margin 0) that frame is pulled back onto the shoulders, 4.8 mm down.
+    """
+    peg, block = models['t_peg'], models['t_slot_block']
+    To = [I4] * 10 + [make_transform(np.eye(3), [0.0, 0.0, 0.0024 * k]) for k in range(1, 6)]
+    out = {}
+    for margin in (0.0, 5.0):
+        cor = ContactCorrector(peg, block,
+                               RecognitionOptions(1e-3, np.deg2rad(1.0), ambiguity_margin=margin))
+        out[margin] = [cor.update(T, I4) for T in To]
+    assert all(abs(r.T_moving[2, 3]) < 1e-9 for r in out[5.0][:10])
+    for k in range(11, len(To)):
+        r = out[5.0][k]
+        assert abs(r.T_moving[2, 3] - To[k][2, 3]) < 1e-9, (k, r.status)
+        assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
+    assert abs(out[0.0][11].T_moving[2, 3]) < 1e-9
+
+
 def test_penetrating_observation_is_never_passed_through(models):
     """
     A free relation chosen for a penetrating pose, or a relation that cannot be met.
