@@ -156,9 +156,9 @@ class ContactCorrectionNode(Node):
             'temporal model: score cost per contact switched on or off between frames',
             0.0, 1000.0))
         self.declare_parameter('ambiguity_margin', 5.0, _float(
-            'correct_trajectory service (offline Viterbi): at a contact change the evidence '
-            'does not pin down, enforce only the contacts common to both relations when the '
-            'other is within this score margin; 0: off', 0.0, 1000.0))
+            'at a contact change the evidence does not pin down, enforce only the contacts '
+            'common to both relations when the other is within this score margin (online: '
+            'forward costs; correct_trajectory service: min-marginals); 0: off', 0.0, 1000.0))
         self.declare_parameter('element_margin', 1e-6, _float(
             'largest distance [m] of a corrected contact point outside its element (given / '
             'detected relations; recognised ones use the search margin)', 0.0, 0.05))

@@ -297,7 +297,7 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     g.add_argument('--ambiguity-margin', type=float, default=5.0,
                    help='at a contact change the evidence does not pin down, enforce only the '
                         'contacts common to both relations when the other is within this '
-                        'score margin (offline; 0: off)')
+                        'score margin (forward costs with --online; 0: off)')
     g.add_argument('--tolerance', type=float, default=0.002,
                    help='contact distance of --per-frame-detection [m]')
     g.add_argument('--penetration-tolerance', type=float, default=None,

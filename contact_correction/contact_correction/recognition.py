@@ -79,7 +79,8 @@ class RecognitionOptions:
         sequence through it at that frame) is within this margin of the Viterbi path's, only
         the groups common to both are enforced there (a correction right under either
         relation: no direction that one of them leaves free is constrained). 0 disables it.
-        The online choice (hysteresis) is not changed.
+        Online (:meth:`RelationTracker.update`) the forward costs take the min-marginals'
+        place, and the rule applies only when some group is common.
     """
 
     sigma_translation: float = 0.001
@@ -508,7 +509,22 @@ class RelationTracker:
         if keep_history:
             self.history.append((fc, {s: (c - base, p) for s, (c, p) in ordered}))
         best_state = ordered[0][0]
-        return fc.hypotheses[best_state], fc
+        h = fc.hypotheses[best_state]
+        margin = rec.options.ambiguity_margin
+        if margin > 0:
+            # the online safe rule: the forward costs play the min-marginals' part (the
+            # evidence of the frames to come is unknown); where a relation with fewer
+            # constraints explains this frame better and its forward cost is within the margin,
+            # only the groups common to both are enforced
+            near = [s for s, _ in ordered[1:] if self._cost[s] <= margin
+                    and fc.hypotheses[s].rank < h.rank
+                    and fc.hypotheses[s].chi2 < h.chi2 - AMBIGUITY_FIT]
+            common = common_state([best_state] + near) if near else frozenset()
+            if common:
+                # (not when nothing is common: the observation would be passed through or,
+                # penetrating, pushed out, which may move it along the free directions)
+                h = fc.hypothesis(common)
+        return h, fc
 
     def backtrack(self) -> List[Hypothesis]:
         """

@@ -23,7 +23,9 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .contact_relation import ContactPair, evaluate_contacts, penetration_depth, relative_pose
+from .contact_relation import (
+    ContactPair, detect_contact_relation, evaluate_contacts, penetration_depth, relative_pose,
+    VERTEX)
 from .correction import correct_pose, CorrectionResult
 from .polyhedron import Polyhedron
 from .recognition import (
@@ -67,6 +69,7 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
     pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check \
         else float('nan')
     tol = max(kwargs.get('residual_tolerance', 1e-9), 1e-6)
+    margin_exit = 1e-4     # [m] faces this close to the nearest exit of a vertex count as exits
 
     def push_out(base: Tuple[ContactPair, ...]) -> Optional[CorrectionResult]:
         """
@@ -78,19 +81,34 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
         """
         if not frame.pool:
             return None
-        sel = np.array([p in base for p in frame.pool], dtype=bool)
+        pool = list(frame.pool)
+        sel = np.array([p in base for p in pool], dtype=bool)
         T_try = np.asarray(T_moving, dtype=float)
         kw = dict(kwargs, optimal=False)
         for _ in range(3):
-            g = evaluate_contacts(moving, fixed, relative_pose(T_try, T_fixed), frame.pool)
+            T_rel = relative_pose(T_try, T_fixed)
+            if T_try is not T_moving:
+                # pairs penetrating at the attempt's pose that the observation's pool lacks
+                # (e.g. edges that cross only once the pose is pushed)
+                extra = [p for p in detect_contact_relation(
+                    moving, fixed, T_try, T_fixed, tolerance=0.0,
+                    penetration_tolerance=max(pen, 1e-3)) if p not in pool]
+                pool += extra
+                sel = np.concatenate([sel, np.zeros(len(extra), dtype=bool)])
+            g = evaluate_contacts(moving, fixed, T_rel, pool)
             new = g.distances < -tol
             if guard is not None and len(guard) == len(new) and T_try is T_moving:
                 new &= guard
+            elif T_try is not T_moving:     # the guard is the observation's
+                real = _really_penetrating(moving, fixed, T_rel, pool, new & ~sel,
+                                           margin_exit)
+                if np.any(real):    # else (penetration along edges only): every pair behind
+                    new = real | (new & sel)    # its plane, as the last resort
             if not np.any(new & ~sel):
                 break
             sel |= new
             r = correct_pose(moving, fixed, T_moving, T_fixed,
-                             [p for p, s in zip(frame.pool, sel) if s], **kw)
+                             [p for p, s in zip(pool, sel) if s], **kw)
             r.relation_source = 'recognised, push-out'
             if r.corrected:
                 return r
@@ -146,6 +164,43 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                                  penetration_before=pen)
     first.relation_source = 'recognised'
     return first
+
+
+def _really_penetrating(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
+                        pool: Sequence[ContactPair], mask: np.ndarray, tol: float
+                        ) -> np.ndarray:
+    """
+    Keep the vertex pairs whose vertex is inside the other solid with this face its exit.
+
+    A vertex behind a face's plane is penetrating that face only when it is inside the other
+    solid and the face is (within ``tol``) the nearest part of its surface: a vertex in a
+    block's slot lies below the block's top-face plane but outside the block, and pushing it
+    out through the top face moves the pose by the slot's depth, along directions the true
+    contact leaves free. Edge-edge pairs are kept.
+
+    :param T_rel: moving pose in the fixed frame (4, 4).
+    :param pool: the frame's pairs.
+    :param mask: the pairs considered (N,) bool.
+    :param tol: slack [m] on the nearest-exit test.
+    :returns: the reduced mask (N,) bool.
+    """
+    out = np.array(mask, dtype=bool)
+    R, t = T_rel[:3, :3], T_rel[:3, 3]
+    Ri, ti = R.T, -R.T @ t
+    for k in np.flatnonzero(out):
+        p = pool[k]
+        if p.moving_type == VERTEX:
+            x, solid, f = R @ moving.vertices[p.moving_index] + t, fixed, p.fixed_index
+        elif p.fixed_type == VERTEX:
+            x, solid, f = Ri @ fixed.vertices[p.fixed_index] + ti, moving, p.moving_index
+        else:
+            continue
+        if solid.contains(x[None])[0] <= 0.5:
+            out[k] = False
+        else:
+            out[k] = float(solid.face_distance(f, x[None])[0]) \
+                <= float(solid.distance_to_surface(x[None])[0]) + tol
+    return out
 
 
 class ContactCorrector:

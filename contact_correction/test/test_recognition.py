@@ -171,6 +171,54 @@ def test_temporal_model_keeps_the_contact_through_an_outlier(models):
     assert out[7].corrected and abs(out[7].T_moving[2, 3]) < 1e-9
 
 
+def test_online_safe_rule_releases_a_contact_being_pulled_off(models):
+    """
+    Inserted T-peg pulled straight up, 2.4 mm per frame (noise-free observations).
+
+    From the second lifted frame on, the online corrector keeps the observed height: the
+    relation still held by the hysteresis (bar on the shoulders) is ambiguous against the
+    lifted one (stem walls only), so only the common contacts are enforced. Without the rule
+    (ambiguity_margin 0) that frame is pulled back onto the shoulders, 4.8 mm down.
+    """
+    peg, block = models['t_peg'], models['t_slot_block']
+    To = [I4] * 10 + [make_transform(np.eye(3), [0.0, 0.0, 0.0024 * k]) for k in range(1, 6)]
+    out = {}
+    for margin in (0.0, 5.0):
+        cor = ContactCorrector(peg, block,
+                               RecognitionOptions(1e-3, np.deg2rad(1.0), ambiguity_margin=margin))
+        out[margin] = [cor.update(T, I4) for T in To]
+    assert all(abs(r.T_moving[2, 3]) < 1e-9 for r in out[5.0][:10])
+    for k in range(11, len(To)):
+        r = out[5.0][k]
+        assert abs(r.T_moving[2, 3] - To[k][2, 3]) < 1e-9, (k, r.status)
+        assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
+    assert abs(out[0.0][11].T_moving[2, 3]) < 1e-9
+
+
+def test_push_out_takes_the_nearest_exit(models):
+    """
+    Shipped peg 7 mm deep in slot_block's slot, observed 1 mm into a wall, free relation chosen.
+
+    The push-out moves it off the wall (about 1 mm along y) and keeps its height: its lower
+    vertices lie below the block's top-face plane but in the slot, outside the block, so they
+    are not pushed up through the top face (the first version moved the peg 7 mm up).
+    """
+    peg, slot = models['peg'], models['slot_block']
+    free = Hypothesis(frozenset(), (), 0.0, 0, 0.0)
+    for ang in (0.0, 0.02):
+        T = make_transform(rotation_about_axis(np.array([1.0, 0.3, 0.2]), ang),
+                           [0.0485, 0.001, -0.007])
+        assert penetration_depth(peg, slot, T, I4, 0.002) > 9e-4
+        rec = RelationRecognizer(peg, slot, RecognitionOptions(1.5e-3, np.deg2rad(2.0)))
+        fc = rec.frame(T, I4)
+        r = correct_recognised(peg, slot, T, I4, free, fc, rec.last_guard(), rec.margin)
+        assert r.corrected, r.status
+        assert penetration_depth(peg, slot, r.T_moving, I4, 0.002) < 1e-8
+        d = r.T_moving[:3, 3] - T[:3, 3]
+        assert abs(d[2]) < 5e-5 and abs(d[0]) < 5e-5, (ang, d)
+        assert 0.9e-3 < -d[1] < 1.5e-3, (ang, d)
+
+
 def test_penetrating_observation_is_never_passed_through(models):
     """
     A free relation chosen for a penetrating pose, or a relation that cannot be met.
