@@ -45,7 +45,8 @@ import numpy as np
 from object_localizer.acquisition import (acquire_object, prepare_acquisition_model,
                                           prepare_acquisition_scene)
 from object_localizer.evaluation import add_s
-from object_localizer.localization import localize, prepare_scene, remove_dominant_plane
+from object_localizer.localization import (fpfh_features, localize, match_features_ransac,
+                                           prepare_scene, remove_dominant_plane)
 from object_localizer.symmetry import find_symmetries, symmetric_pose_error
 from object_localizer.verification import sample_model_surface
 import open3d as o3d
@@ -106,17 +107,10 @@ def open3d_peer(template, points, seed):
     search = prepare_scene(points, v)
     diameter = float(np.linalg.norm(template.points.max(0) - template.points.min(0)))
     search = remove_dominant_plane(search, v, 2.0 * diameter, seed=seed)
-    feats = reg.compute_fpfh_feature(search, o3d.geometry.KDTreeSearchParamHybrid(
-        radius=5.0 * v, max_nn=100))
-    o3d.utility.random.seed(seed)
+    rough, _ = match_features_ransac(template, search, fpfh_features(search, v), seed=seed,
+                                     max_iterations=100000, confidence=0.999)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        res = reg.registration_ransac_based_on_feature_matching(
-            template.cloud, search, template.features, feats, True, 2.0 * v,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-             reg.CorrespondenceCheckerBasedOnDistance(2.0 * v)],
-            reg.RANSACConvergenceCriteria(100000, 0.999))
-        icp = reg.registration_icp(template.cloud, search, 2.0 * v, res.transformation,
+        icp = reg.registration_icp(template.cloud, search, 2.0 * v, rough,
                                    reg.TransformationEstimationPointToPlane(),
                                    reg.ICPConvergenceCriteria(1e-6, 1e-6, 50))
     return np.asarray(icp.transformation)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# build_pkg.sh PKG [PKG...]: colcon build of only the named packages (after editing setup.py or
-# adding data files; Python edits need no rebuild thanks to --symlink-install).
+# build_pkg.sh PKG [PKG...]: colcon build of only the named packages (after editing
+# setup.cfg/setup.py or adding data files; Python edits need no rebuild: --symlink-install).
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 # shellcheck disable=SC1091

@@ -121,8 +121,6 @@ def test_params_file_names_only_declared_parameters():
                     assert node.get_parameter(k).value == v or np.allclose(
                         node.get_parameter(k).value, v), (name, k)
             finally:
-                if hasattr(node, '_running'):
-                    node._running = False
                 node.destroy_node()
         finally:
             shutdown_node(anchor)

@@ -1,6 +1,6 @@
 """The colcon build produced what `ros2 run` and the ament index need, for every package."""
 
-import ast
+import configparser
 import os
 from pathlib import Path
 
@@ -14,15 +14,11 @@ PYTHON_PACKAGES = ['stereo_manip_tools', 'stereo_depth', 'object_localizer',
 
 
 def console_scripts(package: str):
-    """List the executable names declared in the package's setup.py entry_points."""
-    tree = ast.parse((ROOT / package / 'setup.py').read_text())
-    names = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Dict):
-            for k, v in zip(node.keys, node.values):
-                if isinstance(k, ast.Constant) and k.value == 'console_scripts':
-                    names += [e.value.split('=')[0].strip() for e in v.elts]
-    return names
+    """List the executable names declared in the package's setup.cfg entry_points."""
+    cfg = configparser.ConfigParser(interpolation=None)
+    cfg.read(ROOT / package / 'setup.cfg')
+    lines = cfg['options.entry_points']['console_scripts'].strip().splitlines()
+    return [line.split('=')[0].strip() for line in lines]
 
 
 def test_ament_index_finds_every_package():

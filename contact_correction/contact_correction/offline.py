@@ -210,22 +210,18 @@ def plot_fig9(path: Path, stamps: np.ndarray, observed: np.ndarray, fixed: np.nd
                    label='passed through')
 
     fig, ax = plt.subplots(2, 2, figsize=(11, 8))
-    a = ax[0, 0]
-    a.plot(t, con['nl'], 'r.-', lw=1, alpha=0.6, label='non-linear only')
-    a.plot(t, con['op'], 'b.--', lw=1, label='non-linear + optimal')
-    mark(a)
-    a.set_title("|correction| along each frame's constrained translations")
-    a.set_xlabel('time [s]')
-    a.set_ylabel('[mm]')
-    a.legend(fontsize=8)
-    a = ax[0, 1]
-    a.plot(t, free['nl'], 'r.-', lw=1, alpha=0.6, label='non-linear only')
-    a.plot(t, free['op'], 'b.--', lw=1, label='non-linear + optimal (0)')
-    mark(a)
-    a.set_title("|change| along each frame's free translations")
-    a.set_xlabel('time [s]')
-    a.set_ylabel('[mm]')
-    a.legend(fontsize=8)
+    for a, series, optimal_label, title in (
+            (ax[0, 0], con, 'non-linear + optimal',
+             "|correction| along each frame's constrained translations"),
+            (ax[0, 1], free, 'non-linear + optimal (0)',
+             "|change| along each frame's free translations")):
+        a.plot(t, series['nl'], 'r.-', lw=1, alpha=0.6, label='non-linear only')
+        a.plot(t, series['op'], 'b.--', lw=1, label=optimal_label)
+        mark(a)
+        a.set_title(title)
+        a.set_xlabel('time [s]')
+        a.set_ylabel('[mm]')
+        a.legend(fontsize=8)
     a = ax[1, 0]
     a.plot(obs[:, 0] * 1e3, obs[:, 1] * 1e3, 'k.', ms=3, label='observed')
     a.plot(op[:, 0] * 1e3, op[:, 1] * 1e3, 'b-', lw=1, label='non-linear + optimal')

@@ -37,9 +37,9 @@ from sensor_msgs.msg import PointCloud2
 from stereo_manip_msgs.msg import ImplicitPolynomial
 from stereo_manip_msgs.srv import FitImplicitPolynomial
 from stereo_manip_tools.diagnostics import NodeDiagnostics
-from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
-    input_qos_descriptor, input_qos_profile, int_descriptor as _int, \
-    reject_nonfinite_parameters
+from stereo_manip_tools.parameters import choice_parameter_reason, \
+    float_descriptor as _float, INPUT_QOS_CHOICES, input_qos_descriptor, input_qos_profile, \
+    int_descriptor as _int, reject_nonfinite_parameters
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
     spin_until_shutdown
 from visualization_msgs.msg import Marker
@@ -113,15 +113,11 @@ class IpModelerNode(Node):
 
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
         """Check what the descriptors' ranges do not."""
+        reason = choice_parameter_reason(params, {'input_qos': INPUT_QOS_CHOICES,
+                                                  'stabilization': STABILIZATION_MODES})
+        if reason:
+            return SetParametersResult(successful=False, reason=reason)
         for p in params:
-            if p.name == 'input_qos' and p.value not in INPUT_QOS_CHOICES:
-                return SetParametersResult(
-                    successful=False, reason=f'input_qos must be one of {INPUT_QOS_CHOICES}, '
-                    f'got {p.value!r}')
-            if p.name == 'stabilization' and p.value not in STABILIZATION_MODES:
-                return SetParametersResult(
-                    successful=False, reason=f'stabilization must be one of '
-                    f'{", ".join(STABILIZATION_MODES)}, got {p.value!r}')
             if p.name == 'viewpoint':
                 v = list(p.value) if p.value is not None else []
                 if len(v) != 3 or not np.all(np.isfinite(v)):

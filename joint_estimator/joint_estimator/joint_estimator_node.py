@@ -55,8 +55,8 @@ from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, ns_
     numpy_to_point, numpy_to_vector3, path_to_matrices, pose_stamped_to_matrix
 from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import (
-    float_descriptor as _float, int_descriptor as _int, reject_nonfinite_parameters,
-    string_descriptor as _string)
+    choice_parameter_reason, float_descriptor as _float, int_descriptor as _int,
+    reject_nonfinite_parameters, string_descriptor as _string)
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
     spin_until_shutdown
 from stereo_manip_tools.sync import StampSynchronizer
@@ -265,24 +265,10 @@ class JointEstimatorNode(Node):
 
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
         """Check what the descriptors' ranges do not (choices of the string parameters)."""
-        for p in params:
-            if p.name == 'input_mode' and p.value not in ('two_links', 'relative'):
-                return SetParametersResult(
-                    successful=False,
-                    reason=f"input_mode must be 'two_links' or 'relative', got {p.value!r}")
-            if p.name == 'joint_type' and p.value not in JOINT_TYPE_NAMES:
-                return SetParametersResult(
-                    successful=False, reason=f'joint_type must be one of '
-                    f'{", ".join(JOINT_TYPE_NAMES)}, got {p.value!r}')
-            if p.name == 'marker_normal_axis' and p.value not in AXIS_INDEX:
-                return SetParametersResult(
-                    successful=False,
-                    reason=f"marker_normal_axis must be 'x', 'y' or 'z', got {p.value!r}")
-            if p.name == 'correction' and p.value not in ('ml', 'chapter'):
-                return SetParametersResult(
-                    successful=False,
-                    reason=f"correction must be 'ml' or 'chapter', got {p.value!r}")
-        return SetParametersResult(successful=True)
+        reason = choice_parameter_reason(params, {
+            'input_mode': ('two_links', 'relative'), 'joint_type': JOINT_TYPE_NAMES,
+            'marker_normal_axis': tuple(AXIS_INDEX), 'correction': ('ml', 'chapter')})
+        return SetParametersResult(successful=reason is None, reason=reason or '')
 
     def _estimate(self, poses: np.ndarray, stamps: np.ndarray,
                   joint_type: Optional[int] = None,

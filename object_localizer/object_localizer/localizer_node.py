@@ -19,7 +19,7 @@ from __future__ import annotations
 from dataclasses import replace
 import sys
 import threading
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
@@ -47,6 +47,7 @@ from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 from stereo_manip_tools.tf import PoseTfPublisher
 from stereo_manip_tools.transforms import pose_from_xyz_quaternion
+from stereo_manip_tools.worker import NewestOnlyWorker
 
 __all__ = ['ObjectLocalizerNode', 'main']
 
@@ -188,12 +189,9 @@ class ObjectLocalizerNode(Node):
         self.counts = {'received': 0, 'processed': 0, 'dropped_stale': 0, 'rejected': 0,
                        'published': 0, 'lost': 0, 'acquired': 0}
         self._cpu: Dict[str, List[float]] = {n: [] for n in names}
-        self._pending: Optional[PointCloud2] = None
-        self._lock = threading.Lock()            # the pending cloud and the worker's state
+        self._lock = threading.Lock()            # the pending cloud and the counts
         self._settings_lock = threading.Lock()   # tracker settings vs. the tracker's update
-        self._wake = threading.Condition(self._lock)
-        self._running = True
-        self._worker = threading.Thread(target=self._work, name='localizer', daemon=True)
+        self._worker = NewestOnlyWorker(self._work, 'localizer', self._lock)
         self._worker.start()
         self.tf = PoseTfPublisher(self)   # every published pose also on /tf, child = model name
         for name, pub in self.pose_pubs.items():
@@ -230,26 +228,17 @@ class ObjectLocalizerNode(Node):
     def _on_cloud(self, msg: PointCloud2) -> None:
         with self._lock:
             self.counts['received'] += 1
-            if self._pending is not None:
+            if self._worker.put(msg):
                 self.counts['dropped_stale'] += 1
-            self._pending = msg
-            self._wake.notify()
 
-    def _work(self) -> None:
-        while True:
-            with self._lock:
-                while self._running and self._pending is None:
-                    self._wake.wait(0.5)
-                if not self._running:
-                    return
-                msg, self._pending = self._pending, None
-            try:
-                self._process(msg)
-            except Exception as exc:  # keep the node alive; the reason is logged and counted
-                if not self.context.ok():
-                    return              # shutting down (Ctrl-C): nothing to publish to
-                self.counts['rejected'] += 1
-                self.get_logger().error(f'cloud not processed: {type(exc).__name__}: {exc}')
+    def _work(self, msg: PointCloud2) -> None:
+        try:
+            self._process(msg)
+        except Exception as exc:  # keep the node alive; the reason is logged and counted
+            if not self.context.ok():
+                return              # shutting down (Ctrl-C): nothing to publish to
+            self.counts['rejected'] += 1
+            self.get_logger().error(f'cloud not processed: {type(exc).__name__}: {exc}')
 
     def _process(self, msg: PointCloud2) -> None:
         try:
@@ -309,11 +298,7 @@ class ObjectLocalizerNode(Node):
         self.get_logger().info(f'counts {self.counts}; ' + '; '.join(parts))
 
     def destroy_node(self) -> None:
-        with self._lock:
-            self._running = False
-            self._wake.notify_all()
-        if self._worker.is_alive():
-            self._worker.join(timeout=10.0)
+        self._worker.stop(timeout=10.0)
         super().destroy_node()
 
 

@@ -64,6 +64,7 @@ from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, 
     spin_until_shutdown
 from stereo_manip_tools.sync import StampSynchronizer
 from stereo_manip_tools.tf import publish_camera_mount
+from stereo_manip_tools.worker import NewestOnlyWorker
 from stereo_msgs.msg import DisparityImage
 
 __all__ = ['StereoDepthNode', 'prepare_pair', 'stereo_geometry', 'main', 'SUPPORTED_ENCODINGS',
@@ -297,7 +298,6 @@ class StereoDepthNode(Node):
         super().__init__('stereo_depth_node', **kwargs)
         self._params: Dict[str, Any] = {}
         self._lock = threading.Lock()
-        self._wake = threading.Condition(self._lock)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         reject_nonfinite_parameters(self)
         for name, (default, desc) in _PARAMS.items():
@@ -317,14 +317,12 @@ class StereoDepthNode(Node):
             queue_size=int(self._params['sync_queue_size']))
         self._infos: Dict[str, 'OrderedDict[int, CameraInfo]'] = {'left': OrderedDict(),
                                                                   'right': OrderedDict()}
-        self._pending: Optional[Dict[str, Image]] = None
         self.counters: Dict[str, int] = {'received_pairs': 0, 'processed': 0,
                                          'dropped_stale': 0, 'unpaired_images': 0, 'failed': 0,
                                          'skipped_unsubscribed': 0}
         self.rejected: Dict[str, int] = {}
         self._last_warning: Dict[str, float] = {}
         self._proc_times: list = []
-        self._running = True
 
         self.pub_disparity = self.create_publisher(DisparityImage, 'disparity', 1)
         self.pub_depth = self.create_publisher(Image, 'depth', 1)
@@ -343,8 +341,10 @@ class StereoDepthNode(Node):
         self.camera_mount = publish_camera_mount(self)   # static TF parent -> optical frame
         self.diagnostics = NodeDiagnostics(self, lambda: {**self.counters, **{  # /diagnostics
             f'rejected_{k}': v for k, v in dict(self.rejected).items()}})
-        self._worker = threading.Thread(target=self._work, name='stereo_depth_worker',
-                                        daemon=True)
+        self._worker = NewestOnlyWorker(
+            self._work, 'stereo_depth_worker', self._lock, prepare=self._warm_up,
+            take=lambda pair: (pair, dict(self._params),
+                               self._infos_for(stamp_to_ns(pair['left'].header.stamp))))
         self._worker.start()
         self.get_logger().info(
             f"stereo_depth_node ready: method {self._params['method']}, "
@@ -417,10 +417,8 @@ class StereoDepthNode(Node):
             if pair is None:
                 return
             self.counters['received_pairs'] += 1
-            if self._pending is not None:
+            if self._worker.put(pair):
                 self.counters['dropped_stale'] += 1       # superseded before processing
-            self._pending = pair
-            self._wake.notify()
 
     def _infos_for(self, stamp_ns: int) -> Tuple[Optional[CameraInfo], Optional[CameraInfo]]:
         tol = int(round(self._params['sync_tolerance'] * 1e9))
@@ -465,28 +463,19 @@ class StereoDepthNode(Node):
             return
         self.get_logger().info(f'warm-up (kernels loaded) in {time.perf_counter() - t0:.2f} s')
 
-    def _work(self) -> None:
-        self._warm_up()
-        while True:
+    def _work(self, taken: Tuple[Dict[str, Image], Dict[str, Any], Any]) -> None:
+        """Process a pair with the parameters and camera infos taken along with it."""
+        pair, params, infos = taken
+        try:
+            self._process(pair['left'], pair['right'], infos, params)
+        except InputError as exc:
+            self._reject(exc.reason, str(exc))
+        except ValueError as exc:
+            self._reject('invalid', str(exc))
+        except Exception as exc:  # noqa: BLE001 - keep the node alive, count and report
             with self._lock:
-                while self._pending is None and self._running:
-                    self._wake.wait(timeout=0.5)
-                if not self._running:
-                    return
-                pair = self._pending
-                self._pending = None
-                params = dict(self._params)
-                infos = self._infos_for(stamp_to_ns(pair['left'].header.stamp))
-            try:
-                self._process(pair['left'], pair['right'], infos, params)
-            except InputError as exc:
-                self._reject(exc.reason, str(exc))
-            except ValueError as exc:
-                self._reject('invalid', str(exc))
-            except Exception as exc:  # noqa: BLE001 - keep the node alive, count and report
-                with self._lock:
-                    self.counters['failed'] += 1
-                self.get_logger().error(f'processing failed: {type(exc).__name__}: {exc}')
+                self.counters['failed'] += 1
+            self.get_logger().error(f'processing failed: {type(exc).__name__}: {exc}')
 
     def _process(self, left: Image, right: Image, infos, params: Dict[str, Any]) -> None:
         want_disparity = self.pub_disparity.get_subscription_count() > 0
@@ -576,11 +565,7 @@ class StereoDepthNode(Node):
             f'rejected {sum(rejected.values())} {rejected}')
 
     def destroy_node(self) -> None:
-        with self._lock:
-            self._running = False
-            self._wake.notify_all()
-        if self._worker.is_alive():
-            self._worker.join(timeout=5.0)
+        self._worker.stop(timeout=5.0)
         super().destroy_node()
 
 

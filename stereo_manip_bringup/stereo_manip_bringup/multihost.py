@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 import json
 import os
 from pathlib import Path
-import signal
 import subprocess
 import sys
 import tempfile
@@ -34,7 +33,7 @@ import numpy as np
 
 from stereo_manip_bringup.demo import NodeSpec, STAGES
 from stereo_manip_bringup.deployment import multihost_environment
-from stereo_manip_tools.processes import process_cpu_seconds
+from stereo_manip_tools.processes import interrupt_then_kill, process_cpu_seconds
 
 __all__ = ['HOSTS', 'peg_in_hole_placement', 'run_graph', 'summarise', 'GraphRun',
            'CORRECTED_TOPIC', 'TRUTH_TOPIC', 'ros_environment', 'DDS_CHOICES']
@@ -130,16 +129,10 @@ class _Proc:
         return self.log_path.read_text(errors='replace')
 
     def stop(self, timeout: float = 10.0) -> Optional[int]:
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGINT)
-            try:
-                self.popen.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(5)
+        code = interrupt_then_kill(self.popen, timeout)
         if not self._log.closed:
             self._log.close()
-        return self.popen.returncode
+        return code
 
 
 def _stop_all(procs: List[_Proc], run: GraphRun) -> None:

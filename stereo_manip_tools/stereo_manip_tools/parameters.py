@@ -8,7 +8,7 @@ these helpers keep those declarations short and identical across packages.
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable, Optional
+from typing import Any, Iterable, Mapping, Optional, Sequence
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, \
     ParameterType, SetParametersResult
@@ -17,7 +17,7 @@ from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 
 __all__ = ['float_descriptor', 'int_descriptor', 'string_descriptor', 'bool_descriptor',
            'INPUT_QOS_CHOICES', 'input_qos_descriptor', 'input_qos_profile',
-           'nonfinite_parameter_reason', 'reject_nonfinite_parameters']
+           'choice_parameter_reason', 'nonfinite_parameter_reason', 'reject_nonfinite_parameters']
 
 
 def float_descriptor(description: str, low: float, high: float,
@@ -82,6 +82,22 @@ def input_qos_profile(choice: str, depth: int = 2) -> QoSProfile:
     if choice == 'sensor_data':
         return qos_profile_sensor_data
     return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def choice_parameter_reason(params: Iterable[Parameter],
+                            choices: Mapping[str, Sequence[str]]) -> Optional[str]:
+    """
+    Why a parameter update must be refused because a value is not one of its allowed choices.
+
+    :param choices: parameter name -> its allowed values (string parameters a descriptor's range
+        cannot constrain); parameters not named here are not checked.
+    :returns: the reason for the first parameter whose value is not allowed; None when all are.
+    """
+    for p in params:
+        allowed = choices.get(p.name)
+        if allowed is not None and p.value not in allowed:
+            return f'{p.name} must be one of {", ".join(allowed)}, got {p.value!r}'
+    return None
 
 
 def nonfinite_parameter_reason(params: Iterable[Parameter]) -> Optional[str]:

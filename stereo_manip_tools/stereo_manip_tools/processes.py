@@ -23,7 +23,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 __all__ = ['make_node', 'shutdown_node', 'spin_until', 'executable_path', 'ExecutableProcess',
-           'process_cpu_seconds']
+           'interrupt_then_kill', 'process_cpu_seconds']
 
 
 def make_node(name: Optional[str] = None) -> Node:
@@ -80,6 +80,23 @@ def executable_path(package: str, executable: str) -> Path:
     return path
 
 
+def interrupt_then_kill(process: subprocess.Popen, timeout: float = 10.0) -> Optional[int]:
+    """
+    Stop ``process`` as Ctrl-C would: SIGINT, then SIGKILL if still running after ``timeout`` [s].
+
+    :returns: its exit code (negative: the signal that ended it); nothing is sent to a process
+        that has already exited.
+    """
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(5)
+    return process.returncode
+
+
 class ExecutableProcess:
     """A package executable running as its own process; output captured to a temp file."""
 
@@ -128,14 +145,7 @@ class ExecutableProcess:
 
     def stop(self, timeout: float = 10.0) -> int:
         """SIGINT (as Ctrl-C), then SIGKILL after ``timeout`` [s]; returns the exit code."""
-        if self.running():
-            self.process.send_signal(signal.SIGINT)
-            try:
-                self.process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(5)
-        return self.process.returncode
+        return interrupt_then_kill(self.process, timeout)
 
     def __enter__(self) -> 'ExecutableProcess':
         return self

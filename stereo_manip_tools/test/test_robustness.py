@@ -10,7 +10,7 @@ import pytest
 from rclpy.parameter import Parameter
 from stereo_manip_tools.files import check_regular_file, NotARegularFileError, \
     open_regular_file
-from stereo_manip_tools.parameters import nonfinite_parameter_reason, \
+from stereo_manip_tools.parameters import choice_parameter_reason, nonfinite_parameter_reason, \
     reject_nonfinite_parameters
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
 
@@ -80,6 +80,15 @@ def test_nonfinite_parameters_are_refused():
         [Parameter('tolerance', value=float('nan'))])
     assert 'viewpoint' in nonfinite_parameter_reason(
         [Parameter('viewpoint', value=[0.0, float('inf'), 0.0])])
+
+
+def test_parameters_outside_their_choices_are_refused():
+    choices = {'mode': ('fast', 'exact'), 'axis': ('x', 'y', 'z')}
+    assert choice_parameter_reason([Parameter('mode', value='exact'), Parameter('axis', value='z'),
+                                    Parameter('other', value='anything')], choices) is None
+    assert choice_parameter_reason([Parameter('axis', value='y'), Parameter('mode', value='slow')],
+                                   choices) == "mode must be one of fast, exact, got 'slow'"
+    assert choice_parameter_reason([Parameter('axis', value='w')], choices).startswith('axis ')
 
 
 @pytest.mark.ros
