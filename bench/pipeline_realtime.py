@@ -95,7 +95,7 @@ def graph_specs(scene: str, rate: float, peer: bool) -> list:
     The demo graph of ``scene`` with the camera free-running at ``rate`` (``peer``: main's
     stereo configuration).
     """
-    from stereo_manip_bringup.demo import STAGES
+    from stereo_manip_bringup.demo import IP_LIVE_PARAMETERS, STAGES
     nodes = STAGES[scene]().nodes
     for spec in nodes:
         if spec.executable == 'synthetic_camera':
@@ -107,6 +107,8 @@ def graph_specs(scene: str, rate: float, peer: bool) -> list:
         if spec.executable == 'stereo_depth_node' and peer:
             spec.parameters.update(min_disparity=0, max_disparity=160, point_decimation=1,
                                    numba_threading_layer='default')
+        if spec.executable == 'ip_modeler_node' and not peer:
+            spec.parameters.update(IP_LIVE_PARAMETERS)   # bounded fit rate when free-running
         if peer:
             spec.env = {}
             if spec.executable == 'ip_modeler_node':
