@@ -742,25 +742,30 @@ class ObjectTracker:
         return pose, check_pose(m, pose, cone, s, prediction, self._others, acquisition)
 
     def update(self, points: np.ndarray | SceneCloud, stamp_ns: int,
-               others: Sequence[Tuple[TrackingModel, np.ndarray]] = ()) -> TrackUpdate:
+               others: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
+               reacquire: bool = True) -> TrackUpdate:
         """
         Process one cloud (N, 3) [m] (or a :class:`SceneCloud` shared by several trackers).
 
         :param others: the verified (model, pose) of other objects in this cloud; a pose that
             penetrates one of them fails the check.
+        :param reacquire: a track lost in this cloud is searched for globally at once (in this
+            cloud); False: it is only reported lost (state ``LOST``), and the next ``update``
+            (in this cloud or the next) searches -- so a caller can first finish the objects
+            that still track (their poses, and the twins they rule out, come first).
 
         :raises ValueError: the cloud is unusable (shape, too few finite points).
         """
         t0 = time.process_time()
         scene = points if isinstance(points, SceneCloud) else SceneCloud(points)
         self._others = list(others)
-        result = self._update(scene, int(stamp_ns))
+        result = self._update(scene, int(stamp_ns), reacquire)
         result.cpu_seconds = time.process_time() - t0
         if result.pose is not None:
             self._last_quality = result.quality
         return result
 
-    def _update(self, scene: SceneCloud, stamp_ns: int) -> TrackUpdate:
+    def _update(self, scene: SceneCloud, stamp_ns: int, reacquire: bool = True) -> TrackUpdate:
         s = self.settings
         if self.state == TrackState.STATIC and self.history:
             due = self._last_check_ns is None or \
@@ -795,6 +800,8 @@ class ObjectTracker:
                 self._accept(stamp_ns, pose)
                 return TrackUpdate(pose, TrackState.TRACKING, q, 'tracking')
             lost = self._lose(q, f'track lost: {q.reason}')
+            if not reacquire:
+                return lost
             # re-acquire at once, in this cloud (the next one may be far away in time)
             again = self._acquire(scene, stamp_ns, f'{lost.reason}; ')
             again.lost = True
