@@ -57,6 +57,7 @@ def _graph_env() -> Dict[str, str]:
 
 
 PEER_LABEL = 'peer: main (Open3D ICP, whole-cloud crop)'
+PEER_MAX_ICP_POINTS = 2500      # main's ICP point budget (TrackerSettings.max_icp_points)
 CACHE = Path(os.environ.get('LOCALIZER_GRAPH_CACHE', '/tmp/localizer_graph_cpu_cache'))
 
 
@@ -118,8 +119,9 @@ def open3d_track_icp(model, near_points, start, settings):
     """
     Track with the peer's ICP.
 
-    The peer: main's tracking ICP before this branch (Open3D's ``registration_icp``, Tukey
-    point-to-plane, the same two stages and stopping criteria).
+    The peer: main's tracking ICP before the compiled one (Open3D's ``registration_icp``, Tukey
+    point-to-plane, the same two stages, stopping at relative changes of 1e-6 in both, at most
+    main's 2500 scene points).
     """
     import open3d as o3d
 
@@ -129,9 +131,9 @@ def open3d_track_icp(model, near_points, start, settings):
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near_points))
     if s.scene_voxel > 0:
         src = src.voxel_down_sample(s.scene_voxel)
-    if len(src.points) > s.max_icp_points:
-        step = len(src.points) / s.max_icp_points
-        src = src.select_by_index(np.floor(np.arange(s.max_icp_points) * step).astype(int)
+    if len(src.points) > PEER_MAX_ICP_POINTS:
+        step = len(src.points) / PEER_MAX_ICP_POINTS
+        src = src.select_by_index(np.floor(np.arange(PEER_MAX_ICP_POINTS) * step).astype(int)
                                   .tolist())
     pose = np.asarray(start, dtype=float).copy()
     criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, s.icp_iterations)

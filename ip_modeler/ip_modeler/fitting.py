@@ -316,7 +316,9 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
     :param max_degree: highest degree tried (1..16).
     :param target_rms: stop at the first degree whose RMS first-order distance [m] at the
         points is <= this (0: never stop early for accuracy; the best degree is kept).
-    :param min_degree: lowest degree that may be returned.
+    :param min_degree: lowest degree that may be returned; the degrees below it are only
+        factorised (no sheet check: they cannot be chosen), so a fit warm-started from a
+        previous fit's degree (``min_degree`` just below it) skips most of the sheet checks.
     :param offset: 3L layer offset c as a fraction of the normalisation scale (0 < c < 0.5).
     :param stabilization: ``'drop'`` or ``'ridge'`` for columns with small R diagonal, or
         ``'none'``.
@@ -360,6 +362,7 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
     while monomial_count(max_degree) > N:  # no more coefficients than points
         max_degree -= 1
         data_cap = f' (capped by {N} points)'
+    min_degree = min(min_degree, max_degree)
     qr = IncrementalQR(b, stabilization=stabilization, stability_tol=stability_tol,
                        variant=variant, capacity=monomial_count(max_degree),
                        points=X if variant == 'arnoldi' else None)
@@ -376,7 +379,8 @@ def fit_implicit_polynomial(points: np.ndarray, normals: Optional[np.ndarray] = 
         qr.append(M_all[:, cols])
         a = qr.solve(ridge=ridge)
         used_ridge, sheets = ridge, -1
-        if sheet_check and np.all(np.isfinite(a)) and np.any(a[1:]):
+        if sheet_check and degree >= min_degree and np.all(np.isfinite(a)) \
+                and np.any(a[1:]):
             sheets = _spurious_sheet_count(ImplicitPolynomialModel(degree, a, centre, scale),
                                            P, sheet_check_resolution)
             while sheets > 0 and used_ridge * _RIDGE_STEP <= max_sheet_ridge * (1 + 1e-9):

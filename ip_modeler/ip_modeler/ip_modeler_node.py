@@ -14,6 +14,13 @@ fit by incremental QR (:func:`ip_modeler.fitting.fit_implicit_polynomial`) and p
 Service ``fit_implicit_polynomial`` (stereo_manip_msgs/FitImplicitPolynomial) fits a cloud on
 request (``max_degree``/``target_rms`` of 0 mean the node's parameters).
 
+Fit rate: ``min_fit_interval_s`` bounds how often the node fits (a cloud that arrives sooner
+after the start of the previous fit is skipped and counted, never queued), so in a live graph the
+modeller's CPU share is at most about (fit CPU time) / ``min_fit_interval_s`` and it cannot
+starve the pose path: its output rate is then a design figure, about 1 / max(interval, fit
+time). ``warm_start`` starts each fit's degree search one below the previous fit's degree (the
+lower degrees are only factorised, not checked for spurious sheets nor selectable).
+
 Bad input (empty cloud, NaN points, too few points for the degree, planar or collinear clouds)
 is logged with the reason and counted; the node keeps running. Counts appear in every
 message's ``status``.
@@ -21,6 +28,7 @@ message's ``status``.
 
 from __future__ import annotations
 
+import time
 from typing import Dict, List, Optional, Tuple
 
 from ip_modeler.conversions import cloud_to_points, mesh_to_marker, model_to_msg
@@ -28,6 +36,7 @@ from ip_modeler.evaluation import bounding_region, distance_to_zero_set, zero_se
 from ip_modeler.fitting import DEFAULT_3L_OFFSET, estimate_normals, fit_implicit_polynomial, \
     MAX_SUPPORTED_DEGREE
 from ip_modeler.incremental_qr import STABILIZATION_MODES
+from ip_modeler.monomials import monomial_count
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 import rclpy
@@ -90,10 +99,22 @@ class IpModelerNode(Node):
             10, 10_000_000))
         self.declare_parameter('mesh_resolution', 48, _int(
             'marching-cubes samples along the longest side of the marker box', 8, 256))
+        self.declare_parameter('min_fit_interval_s', 0.0, _float(
+            'clouds arriving less than this [s, steady clock] after the start of the previous '
+            'fit are skipped (counted), so the fit CPU share is at most about fit time / '
+            'interval; 0: fit every cloud', 0.0, 3600.0))
+        self.declare_parameter('warm_start', False, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description="start the degree search one below the previous cloud fit's degree "
+                        '(lower degrees only factorised, not selectable); service requests '
+                        'always search from degree 1'))
 
         self.counts: Dict[str, int] = {'clouds': 0, 'fitted': 0, 'rejected': 0,
                                        'nonfinite_points_dropped': 0,
-                                       'points_subsampled_away': 0}
+                                       'points_subsampled_away': 0,
+                                       'skipped_min_interval': 0}
+        self._last_fit_start: Optional[float] = None   # steady clock [s]
+        self._last_degree: Optional[int] = None          # of the last streamed fit
         self._rng = np.random.default_rng(0)
         self.poly_pub = self.create_publisher(ImplicitPolynomial, 'implicit_polynomial', 10)
         self.marker_pub = self.create_publisher(Marker, 'zero_set_marker', 10)
@@ -132,10 +153,12 @@ class IpModelerNode(Node):
         return (', '.join(f'{k} {v}' for k, v in self.counts.items())
                 + f' (rejected by reason: {self.rejections.summary()})')
 
-    def fit_cloud(self, msg: PointCloud2, max_degree: int = 0, target_rms: float = 0.0
-                  ) -> Tuple[ImplicitPolynomial, Marker]:
+    def fit_cloud(self, msg: PointCloud2, max_degree: int = 0, target_rms: float = 0.0,
+                  min_degree: int = 1) -> Tuple[ImplicitPolynomial, Marker]:
         """
         Fit one cloud; returns the messages to publish.
+
+        :param min_degree: lowest degree searched (capped at the maximum degree).
 
         :raises ValueError: bad cloud or request, with the reason.
         """
@@ -161,10 +184,14 @@ class IpModelerNode(Node):
             raise ValueError(f'max_degree must be in [1, {MAX_SUPPORTED_DEGREE}], got '
                              f'{max_degree}')
         target = float(target_rms) or float(g('target_rms'))
+        start = max(1, min(int(min_degree), max_degree))
+        while start > 1 and monomial_count(start) > len(points):   # a small cloud
+            start -= 1
         result = fit_implicit_polynomial(
             points, normals, max_degree=max_degree, target_rms=target, offset=g('offset'),
             stabilization=g('stabilization'), stability_tol=g('stability_tol'),
-            ridge=g('ridge'), min_improvement=g('min_improvement'), patience=g('patience'))
+            ridge=g('ridge'), min_improvement=g('min_improvement'), patience=g('patience'),
+            min_degree=start)
         model = result.model
         mesh = zero_set_mesh(model, *bounding_region(points, 0.1),
                              resolution=g('mesh_resolution'))
@@ -179,13 +206,23 @@ class IpModelerNode(Node):
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         self.counts['clouds'] += 1
+        now = time.monotonic()
+        interval = self.get_parameter('min_fit_interval_s').value
+        if self._last_fit_start is not None and now - self._last_fit_start < interval:
+            self.counts['skipped_min_interval'] += 1
+            return
+        self._last_fit_start = now
+        start = 1
+        if self.get_parameter('warm_start').value and self._last_degree is not None:
+            start = max(1, self._last_degree - 1)
         try:
-            poly, marker = self.fit_cloud(msg)
+            poly, marker = self.fit_cloud(msg, min_degree=start)
         except ValueError as exc:
             self.counts['rejected'] += 1
             self.rejections.reject(getattr(exc, 'reason', 'unusable_cloud'),
                                    f'cloud {self.counts["clouds"]} rejected: {exc}')
             return
+        self._last_degree = int(poly.degree)
         self.poly_pub.publish(poly)
         self.marker_pub.publish(marker)
         self.get_logger().info(

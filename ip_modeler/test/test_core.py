@@ -299,6 +299,23 @@ def test_degree_rises_until_target_and_history_is_recorded():
     assert ev['spurious_sheets'] == 0
 
 
+def test_warm_start_skips_the_low_degree_sheet_checks_and_keeps_the_fit():
+    # a half-visible cube (the live graph's case): the cold search checks every degree for
+    # spurious sheets; started one below the cold fit's degree, the lower degrees are only
+    # factorised, and the chosen model is the same (same factorisation, same ridge search)
+    P, N = sample_shape('cube', 3000, SIZE, np.random.default_rng(9))
+    P, N = visible_half(P, N)
+    cold = fit_implicit_polynomial(P, N, max_degree=8, target_rms=0.01 * SIZE)
+    d = cold.model.degree
+    assert d >= 3
+    warm = fit_implicit_polynomial(P, N, max_degree=8, target_rms=0.01 * SIZE,
+                                   min_degree=d - 1)
+    assert warm.model.degree == d
+    np.testing.assert_allclose(warm.model.coefficients, cold.model.coefficients, atol=1e-9)
+    assert all(s.spurious_sheets == -1 for s in warm.steps if s.degree < d - 1)
+    assert all(s.spurious_sheets >= 0 for s in cold.steps)
+
+
 def test_incremental_fit_equals_from_scratch_fit():
     P, N = sample_shape('superquadric', 800, SIZE, np.random.default_rng(10))
     res = fit_implicit_polynomial(P, N, max_degree=4, target_rms=0.0, patience=8, ridge=0.0)

@@ -118,6 +118,41 @@ def test_parameters_are_validated(modeler):
     assert modeler.set_parameters([Parameter('stabilization', value='ridge')])[0].successful
 
 
+@pytest.mark.ros
+def test_min_fit_interval_skips_clouds_and_warm_start_keeps_the_model(ros_node):
+    node = IpModelerNode(context=ros_node.context, parameter_overrides=[
+        Parameter('target_rms', value=0.0005), Parameter('mesh_resolution', value=32),
+        Parameter('min_fit_interval_s', value=60.0), Parameter('warm_start', value=True)])
+    try:
+        polys = []
+        ros_node.create_subscription(ImplicitPolynomial, 'implicit_polynomial', polys.append,
+                                     10)
+        pub = ros_node.create_publisher(PointCloud2, 'cloud', 10)
+        assert _spin_both([ros_node, node], lambda: pub.get_subscription_count() > 0)
+        P, _, cloud = _cloud('torus', n=1500)
+        for _ in range(3):
+            pub.publish(cloud)
+        assert _spin_both([ros_node, node], lambda: node.counts['clouds'] >= 3)
+        assert _spin_both([ros_node, node], lambda: len(polys) >= 1)
+        # one fit per 60 s: the two clouds after the first are skipped, not fitted later
+        assert node.counts['fitted'] == 1 and node.counts['skipped_min_interval'] == 2
+        assert len(polys) == 1
+        cold = polys[0]
+        assert cold.degree >= 3
+        # interval off: the next cloud is fitted, warm-started one below the last degree,
+        # to the same model
+        assert node.set_parameters([Parameter('min_fit_interval_s', value=0.0)])[0].successful
+        pub.publish(cloud)
+        assert _spin_both([ros_node, node], lambda: len(polys) >= 2)
+        assert polys[1].degree == cold.degree
+        np.testing.assert_allclose(polys[1].coefficients, cold.coefficients, atol=1e-9)
+        assert abs(polys[1].rms_distance - cold.rms_distance) < 1e-9
+        assert not node.set_parameters([Parameter('min_fit_interval_s',
+                                                  value=-1.0)])[0].successful
+    finally:
+        node.destroy_node()
+
+
 def _call(node, server, request, timeout=30.0):
     nodes = [node] + ([server] if server is not None else [])
     return call_service(nodes, FitImplicitPolynomial, 'fit_implicit_polynomial', request, timeout)

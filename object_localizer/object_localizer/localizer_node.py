@@ -28,7 +28,7 @@ from object_localizer.acquisition import prepare_acquisition_model
 from object_localizer.conversions import cloud_xyz, track_status
 from object_localizer.localization import segment_object_points
 from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
-    same_shape, SceneCloud, TrackerSettings
+    same_shape, SceneCloud, TrackerSettings, TrackState, TrackUpdate
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
     SetParametersResult
 import rclpy
@@ -251,40 +251,69 @@ class ObjectLocalizerNode(Node):
             return
         self.counts['processed'] += 1
         stamp = stamp_to_ns(msg.header.stamp)
-        verified = []
-        for name in self._order:
-            tracker = self.trackers[name]
+        verified: list = []
+        # Objects that track first (static ones first of all), published at once; a track
+        # lost here and the objects without a pose are searched for afterwards: a global
+        # search (0.5-4 s) never delays a tracked pose of this cloud, and sees every object
+        # verified in it (a twin verified here no longer makes the search ambiguous).
+        tracking = [n for n in self._order
+                    if self.trackers[n].state in (TrackState.TRACKING, TrackState.STATIC)
+                    and self.trackers[n].history]
+        searching = [n for n in self._order if n not in tracking]
+        lost: Dict[str, TrackUpdate] = {}
+        for name in tracking:
+            was = self.trackers[name].state
             with self._settings_lock:
-                result = tracker.update(scene, stamp, verified)
-            self._cpu[name].append(result.cpu_seconds)
-            if result.pose is not None:
-                verified.append((tracker.model, result.pose))
-            if result.lost:
-                self.counts['lost'] += 1
-                self.get_logger().warning(f'{name}: {result.reason}')
-            if result.acquired:
-                self.counts['acquired'] += 1
-                self.get_logger().info(f'{name}: acquired (quality '
-                                       f'{result.quality.quality:.2f}, '
-                                       f'{result.cpu_seconds:.2f} s CPU)')
-            if result.pose is not None:
-                self.counts['published'] += 1
-                self.pose_pubs[name].publish(PoseStamped(header=msg.header,
-                                                         pose=matrix_to_pose(result.pose)))
-            self.status_pubs[name].publish(track_status(
-                msg.header, name, result.state, result.quality, result.reason))
-            if result.pose is None:
+                result = self.trackers[name].update(scene, stamp, verified, reacquire=False)
+            if was == TrackState.TRACKING and result.lost and result.pose is None:
+                lost[name] = result      # searched for below, in this cloud
                 continue
-            if self.cloud_pubs[name].get_subscription_count() > 0:
-                margin = self.get_parameter('segment_margin').value
-                points = scene.around_box(result.pose, tracker.model.template.points, margin)
-                segment = segment_object_points(points, tracker.model.template, result.pose,
-                                                margin)
-                self.cloud_pubs[name].publish(xyz_to_pointcloud2(segment, msg.header))
-            if self.track_pubs[name].get_subscription_count() > 0 and tracker.history:
-                stamps, poses = zip(*tracker.history)
-                self.track_pubs[name].publish(
-                    matrices_to_path(np.array(poses), msg.header.frame_id, stamps))
+            self._publish(name, result, msg, scene, verified)
+        for name in searching + [n for n in self._order if n in lost]:
+            with self._settings_lock:
+                result = self.trackers[name].update(scene, stamp, verified)
+            if name in lost:     # lost in this cloud: report the loss with the search
+                first = lost[name]
+                result.lost = True
+                result.reason = f'{first.reason}; {result.reason}'
+                result.cpu_seconds += first.cpu_seconds
+                if result.quality is None:
+                    result.quality = first.quality
+            self._publish(name, result, msg, scene, verified)
+
+    def _publish(self, name: str, result: TrackUpdate, msg: PointCloud2, scene: SceneCloud,
+                 verified: list) -> None:
+        """Count, log and publish one object's outcome of a cloud; a pose joins ``verified``."""
+        tracker = self.trackers[name]
+        self._cpu[name].append(result.cpu_seconds)
+        if result.pose is not None:
+            verified.append((tracker.model, result.pose))
+        if result.lost:
+            self.counts['lost'] += 1
+            self.get_logger().warning(f'{name}: {result.reason}')
+        if result.acquired:
+            self.counts['acquired'] += 1
+            self.get_logger().info(f'{name}: acquired (quality '
+                                   f'{result.quality.quality:.2f}, '
+                                   f'{result.cpu_seconds:.2f} s CPU)')
+        if result.pose is not None:
+            self.counts['published'] += 1
+            self.pose_pubs[name].publish(PoseStamped(header=msg.header,
+                                                     pose=matrix_to_pose(result.pose)))
+        self.status_pubs[name].publish(track_status(
+            msg.header, name, result.state, result.quality, result.reason))
+        if result.pose is None:
+            return
+        if self.cloud_pubs[name].get_subscription_count() > 0:
+            margin = self.get_parameter('segment_margin').value
+            points = scene.around_box(result.pose, tracker.model.template.points, margin)
+            segment = segment_object_points(points, tracker.model.template, result.pose,
+                                            margin)
+            self.cloud_pubs[name].publish(xyz_to_pointcloud2(segment, msg.header))
+        if self.track_pubs[name].get_subscription_count() > 0 and tracker.history:
+            stamps, poses = zip(*tracker.history)
+            self.track_pubs[name].publish(
+                matrices_to_path(np.array(poses), msg.header.frame_id, stamps))
 
     def _log_stats(self) -> None:
         parts = []

@@ -78,9 +78,12 @@ class TrackerSettings:
     :ivar icp_min_step: the last ICP stage also stops when its step turns the scene by less
         than this [rad] and moves it by less than this [m].
     :ivar icp_coarse_min_step: the same for the first (coarse, wide) stage, which the last one
-        refines.
+        refines (0.1 mm / 0.1 mrad: its last micrometre steps are redone by the last stage).
     :ivar scene_voxel: voxel size [m] the scene crop is down-sampled to for ICP.
-    :ivar max_icp_points: at most this many of those points take part (evenly chosen).
+    :ivar max_icp_points: at most this many of those points take part (evenly chosen): a fixed
+        budget per object (1000: the primitives graph's cube/torus crops have ~2000-2500 after
+        the voxel filter; on the live graphs' clouds ADD-S p95 is unchanged against 2500 and
+        ICP CPU falls by a third, see bench/results/localizer_graph_cpu.json).
     :ivar inlier_distance: largest distance [m] (along the model normal) of an observed point
         from the model surface for the model sample to count as seen (inlier).
     :ivar min_inlier_fraction: smallest inlier fraction of a published tracked pose.
@@ -135,9 +138,9 @@ class TrackerSettings:
     loss_scale: float = 0.0015
     icp_iterations: int = 30
     icp_min_step: float = 1e-6
-    icp_coarse_min_step: float = 1e-6
+    icp_coarse_min_step: float = 1e-4
     scene_voxel: float = 0.003
-    max_icp_points: int = 2500
+    max_icp_points: int = 1000
     inlier_distance: float = 0.003
     min_inlier_fraction: float = 0.75
     min_acquisition_inlier_fraction: float = 0.85
@@ -739,25 +742,30 @@ class ObjectTracker:
         return pose, check_pose(m, pose, cone, s, prediction, self._others, acquisition)
 
     def update(self, points: np.ndarray | SceneCloud, stamp_ns: int,
-               others: Sequence[Tuple[TrackingModel, np.ndarray]] = ()) -> TrackUpdate:
+               others: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
+               reacquire: bool = True) -> TrackUpdate:
         """
         Process one cloud (N, 3) [m] (or a :class:`SceneCloud` shared by several trackers).
 
         :param others: the verified (model, pose) of other objects in this cloud; a pose that
             penetrates one of them fails the check.
+        :param reacquire: a track lost in this cloud is searched for globally at once (in this
+            cloud); False: it is only reported lost (state ``LOST``), and the next ``update``
+            (in this cloud or the next) searches -- so a caller can first finish the objects
+            that still track (their poses, and the twins they rule out, come first).
 
         :raises ValueError: the cloud is unusable (shape, too few finite points).
         """
         t0 = time.process_time()
         scene = points if isinstance(points, SceneCloud) else SceneCloud(points)
         self._others = list(others)
-        result = self._update(scene, int(stamp_ns))
+        result = self._update(scene, int(stamp_ns), reacquire)
         result.cpu_seconds = time.process_time() - t0
         if result.pose is not None:
             self._last_quality = result.quality
         return result
 
-    def _update(self, scene: SceneCloud, stamp_ns: int) -> TrackUpdate:
+    def _update(self, scene: SceneCloud, stamp_ns: int, reacquire: bool = True) -> TrackUpdate:
         s = self.settings
         if self.state == TrackState.STATIC and self.history:
             due = self._last_check_ns is None or \
@@ -792,6 +800,8 @@ class ObjectTracker:
                 self._accept(stamp_ns, pose)
                 return TrackUpdate(pose, TrackState.TRACKING, q, 'tracking')
             lost = self._lose(q, f'track lost: {q.reason}')
+            if not reacquire:
+                return lost
             # re-acquire at once, in this cloud (the next one may be far away in time)
             again = self._acquire(scene, stamp_ns, f'{lost.reason}; ')
             again.lost = True

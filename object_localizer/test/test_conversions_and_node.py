@@ -102,3 +102,70 @@ def test_node_builds_segment_and_path_only_for_subscribers(ros_node):
         assert node.counts['processed'] == 2 and node.counts['published'] == 2
     finally:
         node.destroy_node()
+
+
+def test_tracked_objects_are_published_before_a_lost_ones_search(ros_node):
+    """
+    A lost track's global search waits for the objects that still track.
+
+    In-process node with link_base and link_arm (identical bricks), both verified from hints on
+    the first cloud and tracked on the second. On the third, link_base has jumped 15 cm: its
+    track is lost, and its search runs only after link_arm's pose is published (a search takes
+    seconds; it must not delay a tracked pose), with link_arm verified in this cloud among the
+    search's `others`.
+    """
+    from rclpy.parameter import Parameter
+    from object_localizer.localizer_node import ObjectLocalizerNode
+    from stereo_manip_tools.transforms import quaternion_from_matrix
+
+    meshes = {n: load_obj(find_model(n)) for n in ('link_base', 'link_arm')}
+    truth = {'link_base': make_transform(rotation_about_axis([1, 0, 0], 2.2), [-0.06, 0, 0.6]),
+             'link_arm': make_transform(rotation_about_axis([1, 0.2, 0], 2.0),
+                                        [0.08, 0.02, 0.62])}
+    hints = []
+    for n in ('link_base', 'link_arm'):
+        hints += list(truth[n][:3, 3]) + list(quaternion_from_matrix(truth[n][:3, :3]))
+    node = ObjectLocalizerNode(context=ros_node.context, parameter_overrides=[
+        Parameter('models', value=['link_base', 'link_arm']),
+        Parameter('initial_poses', value=[float(v) for v in hints])])
+    events = []
+    searched_with = []
+    for name, tracker in node.trackers.items():
+        original = tracker.update
+
+        def update(*a, _orig=original, _name=name, **kw):
+            events.append((_name, 'update', kw.get('reacquire', True)))
+            return _orig(*a, **kw)
+        tracker.update = update
+
+        def no_candidates(model, points, seed, _name=name):
+            searched_with.append([m.name for m, _ in node.trackers[_name]._others])
+            events.append((_name, 'search', None))
+            return []
+        tracker.acquirer = no_candidates
+        original_publish = node.pose_pubs[name].publish
+
+        def publish(msg, _orig=original_publish, _name=name):
+            events.append((_name, 'pose', None))
+            _orig(msg)
+        node.pose_pubs[name].publish = publish
+    jumped = make_transform(np.eye(3), [0.15, 0.0, 0.0]) @ truth['link_base']
+    try:
+        for k, poses in enumerate((truth, truth, {**truth, 'link_base': jumped})):
+            cloud = np.vstack([sample_visible_surface(meshes[n], T, 8000, seed=10 * k + i)
+                               for i, (n, T) in enumerate(poses.items())])
+            header = Header(frame_id='stereo_left_optical', stamp=ns_to_stamp(k * 100_000_000))
+            events.clear()
+            node._process(xyz_to_pointcloud2(cloud, header))
+            if k < 2:
+                assert [e for e in events if e[1] == 'pose'] == [('link_base', 'pose', None),
+                                                                 ('link_arm', 'pose', None)]
+        assert events == [('link_base', 'update', False), ('link_arm', 'update', False),
+                          ('link_arm', 'pose', None), ('link_base', 'update', True),
+                          ('link_base', 'search', None)], events
+        assert searched_with == [['link_arm']]
+        assert node.trackers['link_base'].state == TrackState.LOST
+        assert node.trackers['link_arm'].state == TrackState.TRACKING
+        assert node.counts['lost'] == 1 and node.counts['published'] == 5
+    finally:
+        node.destroy_node()
