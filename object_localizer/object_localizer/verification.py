@@ -216,7 +216,7 @@ class VisibilityScore:
     @property
     def combined(self) -> float:
         """
-        ``score * min(1, edge_fraction / 0.5)`` (a factor 0.75 when the edges are unknown).
+        ``score * min(1, edge_fraction / 0.6)`` (a factor 0.625 when the edges are unknown).
 
         The ranking score of pose hypotheses in acquisition. The edge support saturates at
         0.5: an object resting on a support keeps the edges of its free sides only (about half
@@ -227,7 +227,7 @@ class VisibilityScore:
         score 0.55, edges 0.96) beat the truth (0.75, edges 0.51) in 4 of 14 trials.
         """
         e = 0.375 if not np.isfinite(self.edge_fraction) else self.edge_fraction
-        return self.score * min(1.0, e / 0.5)
+        return self.score * min(1.0, e / 0.6)
 
 
 @numba.njit(cache=True)
