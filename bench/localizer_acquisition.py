@@ -48,7 +48,8 @@ from object_localizer.evaluation import add_s
 from object_localizer.localization import (fpfh_features, localize, match_features_ransac,
                                            prepare_scene, remove_dominant_plane)
 from object_localizer.symmetry import find_symmetries, symmetric_pose_error
-from object_localizer.verification import sample_model_surface
+from object_localizer.verification import (observe_depth, sample_model_surface,
+                                           score_pose_visibility)
 import open3d as o3d
 from stereo_manip_tools.bench_report import goal, results_dir, write_report
 from stereo_manip_tools.mesh_io import find_model, load_obj
@@ -134,6 +135,49 @@ def run_method(method, model, points, camera, seed):
     return pose, time.perf_counter() - t0, score
 
 
+def observability(model, points, camera, truth, chosen):
+    """
+    Diagnose a trial: how much of the object the stereo cloud shows, and which pose scores more.
+
+    The true pose is scored against the observed depth like any hypothesis (4 mm tolerance):
+    ``truth_inlier_fraction`` is the share of its expected-visible pixels where the stereo
+    depth is within 4 mm of the model (0 = the sensor does not see the object where it is, e.g.
+    nearer than the stereo's minimum depth), ``truth_combined`` / ``chosen_combined`` the
+    ranking scores of the truth and of the returned pose (chosen > truth: the score prefers a
+    wrong pose; truth > chosen: the right pose was not generated or lost in refinement).
+    """
+    observed = observe_depth(points, camera)
+    vt = score_pose_visibility(model.surface, truth, observed, inlier_threshold=0.004)
+    vc = score_pose_visibility(model.surface, chosen, observed, inlier_threshold=0.004)
+    return {'truth_inlier_fraction': vt.inlier_fraction,
+            'truth_violation_fraction': vt.violation_fraction,
+            'truth_occluded_fraction': vt.occluded_fraction,
+            'truth_unknown_fraction': vt.unknown_fraction,
+            'truth_edge_fraction': vt.edge_fraction,
+            'truth_combined': vt.combined, 'chosen_combined': vc.combined}
+
+
+def diagnose(failures):
+    """
+    Count the failures per object by cause (see :func:`observability`).
+
+    ``sensor``: less than half of the true pose's visible surface is in the stereo cloud
+    (truth_inlier_fraction < 0.5); ``score``: the returned wrong pose scores at least as high
+    as the truth (the verification prefers it); ``search``: the truth scores higher (the right
+    pose was not generated, or lost in refinement).
+    """
+    out = {}
+    for r in failures:
+        o = r.get('observability')
+        if o is None:
+            continue
+        cause = 'sensor' if o['truth_inlier_fraction'] < 0.5 else \
+            'score' if o['chosen_combined'] >= o['truth_combined'] else 'search'
+        counts = out.setdefault(r['object'], {'sensor': 0, 'score': 0, 'search': 0})
+        counts[cause] += 1
+    return out
+
+
 def stats(values):
     v = np.asarray(values, dtype=float)
     return {'median': float(np.median(v)), 'p95': float(np.percentile(v, 95)),
@@ -197,6 +241,8 @@ def main() -> None:
                     et2, er2 = symmetric_pose_error(pose, Tt, symmetries[name], sym_sets[name])
                     if max(et2 / TOL_T, er2 / TOL_R) < max(e_t / TOL_T, e_r / TOL_R):
                         e_t, e_r = et2, er2
+            if method == 'ppf':
+                rec['observability'] = observability(models[name], pts, camera, T, pose)
             rec[method] = {'t_err_m': e_t, 'r_err_deg': float(np.degrees(e_r)),
                            'add_s_m': add_s(pose, T, models[name].template.points),
                            'time_s': dt, 'score': score, 'success_strict': strict,
@@ -219,8 +265,13 @@ def main() -> None:
             'time_s': stats([r['time_s'] for r in rs]),
             'failures': [{k: r[k] for k in ('scene', 'seed', 'frame', 'object')}
                          | {'t_err_m': r[method]['t_err_m'], 'r_err_deg': r[method]['r_err_deg']}
+                         | ({'observability': r['observability']}
+                            if method == 'ppf' and 'observability' in r else {})
                          for r in records if method in r and not r[method]['success']],
         }
+    if 'ppf' in summary:
+        summary['ppf']['failure_diagnosis'] = diagnose(
+            [r for r in records if 'ppf' in r and not r['ppf']['success']])
     per_object = {}
     for name in models:
         per_object[name] = {m: float(np.mean([r[m]['success'] for r in records
