@@ -24,6 +24,8 @@ __all__ = [
     'DegenerateMotionError',
     'JointFit',
     'validate_track',
+    'check_unit_quaternion',
+    'QUATERNION_NORM_TOLERANCE',
     'relative_track',
     'split_track',
     'compose_track',
@@ -158,6 +160,26 @@ class JointFit:
     def position_rms(self) -> float:
         """RMS position residual [m] over the inlier frames."""
         return float(np.sqrt(np.mean(self.position_residuals[self.inliers] ** 2)))
+
+
+#: A pose message's quaternion must have a norm within this of 1 (a producer normalises it;
+#: float32 round-off is ~1e-7); norms like 2, 1e12 or 1e-12 mark a malformed message, which a
+#: silent normalisation would let into the estimation window as a plausible pose.
+QUATERNION_NORM_TOLERANCE = 0.01
+
+
+def check_unit_quaternion(q: Sequence[float],
+                          tolerance: float = QUATERNION_NORM_TOLERANCE) -> None:
+    """
+    Check that a quaternion ``q`` (x, y, z, w) of a pose message is (nearly) unit.
+
+    :raises ValueError: naming the norm, when it is not finite or differs from 1 by more than
+        ``tolerance``.
+    """
+    norm = float(np.linalg.norm(np.asarray(q, dtype=float)))
+    if not np.isfinite(norm) or abs(norm - 1.0) > tolerance:
+        raise ValueError(f'quaternion norm {norm:.6g} is not 1 (tolerance {tolerance:g}): '
+                         'not a rotation')
 
 
 def validate_track(poses: np.ndarray, stamps_ns: Optional[Sequence[int]] = None,

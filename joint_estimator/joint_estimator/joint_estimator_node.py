@@ -39,7 +39,7 @@ from typing import List, Optional
 
 from geometry_msgs.msg import PoseStamped
 from joint_estimator.ambiguity import AXIS_INDEX, relative_candidates, two_link_candidates
-from joint_estimator.common import JointType, relative_track
+from joint_estimator.common import check_unit_quaternion, JointType, relative_track
 from joint_estimator.selection import estimate_joint, JointEstimation
 from nav_msgs.msg import Path
 import numpy as np
@@ -68,6 +68,12 @@ __all__ = ['JointEstimatorNode', 'estimation_to_msg', 'estimation_to_marker', 'J
 
 #: Parameter values of ``joint_type`` and their JointEstimate constants (auto: 255).
 JOINT_TYPE_NAMES = {'auto': 255, **{t.name.lower(): int(t) for t in JointType}}
+
+
+def _check_orientation(msg: PoseStamped) -> None:
+    """Reject a pose whose quaternion is not (nearly) unit (see ``check_unit_quaternion``)."""
+    q = msg.pose.orientation
+    check_unit_quaternion((q.x, q.y, q.z, q.w))
 
 
 def joint_position(estimation: JointEstimation) -> float:
@@ -314,6 +320,7 @@ class JointEstimatorNode(Node):
         self.counts['received'] += 1
         try:
             T, stamp, frame = pose_stamped_to_matrix(msg)
+            _check_orientation(msg)
         except ValueError as exc:
             self._reject(f'link_{key}_pose', str(exc))
             return
@@ -333,6 +340,7 @@ class JointEstimatorNode(Node):
         self.counts['received'] += 1
         try:
             T, stamp, frame = pose_stamped_to_matrix(msg)
+            _check_orientation(msg)
         except ValueError as exc:
             self._reject('relative_pose', str(exc))
             return

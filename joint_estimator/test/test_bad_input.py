@@ -1,6 +1,7 @@
 """Bad input gets a clear message, never a crash or a silent answer."""
 
-from joint_estimator.common import compose_track, JointType, relative_track, validate_track
+from joint_estimator.common import check_unit_quaternion, compose_track, JointType, \
+    relative_track, validate_track
 from joint_estimator.revolute import estimate_revolute_joint
 from joint_estimator.selection import estimate_joint
 from joint_estimator.synthetic import random_joint_motion
@@ -69,3 +70,15 @@ def test_all_types_degenerate_gives_one_clear_message():
     still = compose_track(np.tile(np.eye(3), (3, 1, 1)), np.zeros((3, 3)))
     with pytest.raises(ValueError, match='prismatic: .*does not define a sliding direction'):
         estimate_joint(still, candidates=[JointType.PRISMATIC, JointType.REVOLUTE])
+
+
+def test_non_unit_quaternion_of_a_message_is_refused():
+    """The node's check: a norm of 2, 1e12, 1e-12 or NaN is a malformed pose, not a rotation."""
+    for q in ((0.0, 0.0, 0.0, 2.0), (0.0, 0.0, 0.0, 1e12), (0.0, 0.0, 0.0, 1e-12),
+              (0.0, 0.0, 0.0, 0.0), (np.nan, 0.0, 0.0, 1.0), (1.0, 1.0, 0.0, 0.0)):
+        with pytest.raises(ValueError, match='quaternion norm'):
+            check_unit_quaternion(q)
+    # unit, and float32 round-off of a unit quaternion, pass
+    check_unit_quaternion((0.0, 0.0, 0.0, 1.0))
+    q = np.float32([0.1, -0.7, 0.3, 0.64]).astype(float)
+    check_unit_quaternion(q / np.linalg.norm(q) * (1.0 + 1e-6))

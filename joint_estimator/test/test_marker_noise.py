@@ -133,9 +133,11 @@ def test_weighted_fit_beats_the_isotropic_one_and_reports_its_uncertainty():
         assert 0.7 < b.extra['corner_noise_normalised'] / tr['sigma_n'] < 1.3
     assert np.mean(wml) < 0.7 * np.mean(iso), (wml, iso)
     assert max(wml) < 8.0, wml
-    # the reported axis-point std is optimistic (about 2x on the issue-14 tracks; README): the
-    # bound catches a gross miscalibration; 4 tracks give a noisy median (3.4 on Noble's SciPy)
-    assert np.median(z) < 5.0, z
+    # the reported axis-point std is calibrated: the line distance (max over A, B and +-0.1 m,
+    # so a little above the centre's error) over the std has a median near 1 (0.96 at the
+    # centre, 1.12 for this distance on 8 bench tracks); a std 3x too small (the forward-
+    # difference Jacobian before) or 3x too large fails
+    assert 0.33 < np.median(z) < 3.0, z
 
 
 def test_known_side_and_the_flipped_track():
@@ -170,11 +172,14 @@ def test_small_track_with_outliers_is_not_taken_over_by_twins():
 
     N = 20, 30 deg, 20 % outliers (the accuracy bench's hardest cell, its seeds): a few
     seeds used to fit twins of most frames (78 deg off) or the per-frame marker model on a
-    generic track (35 deg off).
+    generic track (35 deg off). Of its 50 seeds, with the two guards in ``selection`` removed
+    (the no-flip hypothesis when most inliers are twins; the marker refit only with the lower
+    -2 log L) seed 43 comes out 78 deg off and seed 1 38 deg off (the next worst 3.9 deg): the
+    test runs those two and six others (the worst of the rest among them) to stay fast.
     """
     sp, sr, n = 0.001, np.deg2rad(1.0), 20
     worst, rot_fit, rot_raw = 0.0, [], []
-    for seed in range(50):
+    for seed in (43, 1, 11, 4, 15, 0, 2, 3):
         rng = np.random.default_rng([seed, n, 2, 0, int(sp * 1e4), int(sr * 1e4)])
         g = random_joint_motion(JointType.REVOLUTE, n, rng, rotation_range=np.deg2rad(30.0))
         noisy, out = add_outliers(add_noise(g.poses, sp, sr, rng), 0.2, rng)

@@ -96,14 +96,19 @@ def test_bad_poses_are_counted_and_the_node_keeps_running(ros_node, estimator):
     nan.pose.position.x = float('nan')
     pub.publish(nan)                                              # NaN position
     _spin_both([ros_node, estimator], lambda: False, timeout=0.05)
+    scaled = _stamped(noisy[0], 7, 'b')           # a quaternion of norm 2: malformed (#16 fuzz)
+    o = scaled.pose.orientation
+    o.x, o.y, o.z, o.w = 2.0 * o.x, 2.0 * o.y, 2.0 * o.z, 2.0 * o.w
+    pub.publish(scaled)
+    _spin_both([ros_node, estimator], lambda: False, timeout=0.05)
     for i, T in enumerate(noisy):
         pub.publish(_stamped(T, (i + 1) * 10 ** 8, 'b'))
         _spin_both([ros_node, estimator], lambda: False, timeout=0.02)
     # a stamp slightly behind the newest (reordering, within stamp_reset_threshold)
     pub.publish(_stamped(noisy[0], 40 * 10 ** 8 - 10 ** 7, 'b'))
     assert _spin_both([ros_node, estimator],
-                      lambda: estimator.counts['rejected'] >= 3 and len(got) >= 2)
-    assert estimator.counts['rejected'] == 3 and estimator.counts['resets'] == 0
+                      lambda: estimator.counts['rejected'] >= 4 and len(got) >= 2)
+    assert estimator.counts['rejected'] == 4 and estimator.counts['resets'] == 0
     assert got[-1].joint_type == JointEstimate.REVOLUTE
 
 
