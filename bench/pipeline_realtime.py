@@ -18,9 +18,10 @@ free-running at ``rate`` Hz, 640x480, and observes it from this process:
 The peer in the same run is the graph as main configured it (``scene:rate:peer``): full
 disparity range 0-159 px, every pixel in the cloud, numba's default threading layer (OpenMP
 here), OpenBLAS with one thread per core, the IP modeller's default point budget. Ours adds
-``stereo_manip_bringup.demo.IP_LIVE_PARAMETERS`` to the IP modellers (at most one fit per 2 s
-each: with a free-running camera their IP rate, ~0.5 Hz per object, is a design figure; the
-clouds in between are skipped and counted, not dropped frames of the pose path).
+``stereo_manip_bringup.demo.LIVE_PARAMETERS`` to the pose consumers: the IP modellers fit at
+most once per 2 s each and the joint estimator re-estimates every 10th pose pair (with a
+free-running camera their output rates, ~0.5 Hz per object and 1 Hz, are design figures; the
+inputs in between are skipped and counted, not dropped frames of the pose path).
 
 Usage::
 
@@ -98,7 +99,7 @@ def graph_specs(scene: str, rate: float, peer: bool) -> list:
     The demo graph of ``scene`` with the camera free-running at ``rate`` (``peer``: main's
     stereo configuration).
     """
-    from stereo_manip_bringup.demo import IP_LIVE_PARAMETERS, STAGES
+    from stereo_manip_bringup.demo import LIVE_PARAMETERS, STAGES
     nodes = STAGES[scene]().nodes
     for spec in nodes:
         if spec.executable == 'synthetic_camera':
@@ -110,8 +111,8 @@ def graph_specs(scene: str, rate: float, peer: bool) -> list:
         if spec.executable == 'stereo_depth_node' and peer:
             spec.parameters.update(min_disparity=0, max_disparity=160, point_decimation=1,
                                    numba_threading_layer='default')
-        if spec.executable == 'ip_modeler_node' and not peer:
-            spec.parameters.update(IP_LIVE_PARAMETERS)   # bounded fit rate when free-running
+        if not peer:      # bounded rates of the pose consumers when free-running
+            spec.parameters.update(LIVE_PARAMETERS.get(spec.executable, {}))
         if peer:
             spec.env = {}
             if spec.executable == 'ip_modeler_node':

@@ -43,7 +43,7 @@ from collections import deque
 from dataclasses import dataclass, field
 import enum
 import time
-from typing import Any, Callable, Deque, Optional, Sequence, Tuple
+from typing import Any, Callable, Deque, List, Optional, Sequence, Tuple
 
 import numpy as np
 from object_localizer.localization import localize, ModelTemplate, prepare_model, sample_surface
@@ -853,6 +853,14 @@ class ObjectTracker:
                 return TrackUpdate(None, state, distinct[0][1], hint_reason + (
                     f'ambiguous: the same shape as {", ".join(t.model.name for t in open_twins)}'
                     '; an initial pose (hint) is needed to tell them apart; not published'))
+            assigned = self._assign_among_twins(distinct, twins)
+            if assigned is not None:
+                pose, q = assigned
+                return self._start(stamp_ns, pose, q, hint_reason + (
+                    f'acquired ({len(distinct)} places fit the shape of '
+                    f'{", ".join([self.model.name] + [t.model.name for t in open_twins])}: '
+                    'named by the assignment clearly nearest their known poses)'),
+                    acquired=True)
             # clearly nearer its own known pose than any twin's, and near enough to it that
             # the parts cannot have swapped places (they are at least that far apart)
             distinct = [d for d in distinct
@@ -883,6 +891,28 @@ class ObjectTracker:
                            f'{len(distinct)} distinct poses fit the cloud '
                            f'({1e3 * min(gaps):.0f} mm or more apart) and no known pose tells '
                            'them apart; not published')
+
+    def _assign_among_twins(self, distinct: list, twins: List[np.ndarray]
+                            ) -> Optional[Tuple[np.ndarray, PoseQuality]]:
+        """
+        Name one of several places that fit identical parts by their known poses.
+
+        With one unverified twin whose known pose is ``twins[0]`` and at least two distinct
+        places that fit, the places (i, j) for (this part, the twin) minimising the summed mean
+        displacement from the two known poses are taken when that sum is less than half of the
+        swapped assignment's (j, i): known poses that went stale as the parts moved (a hint of
+        frame 0 for a free-running camera) still tell the parts apart while they have not
+        swapped places. Return this part's (pose, quality), or None when it does not decide.
+        """
+        if self.reference is None or len(twins) != 1 or len(distinct) < 2:
+            return None
+        own = [mean_displacement(self.model, d[0], self.reference) for d in distinct]
+        other = [mean_displacement(self.model, d[0], twins[0]) for d in distinct]
+        pairs = [(own[i] + other[j], i, j) for i in range(len(distinct))
+                 for j in range(len(distinct)) if i != j]
+        cost, i, j = min(pairs)
+        swapped = own[j] + other[i]
+        return distinct[i] if cost < 0.5 * swapped else None
 
     def known_pose(self) -> Optional[np.ndarray]:
         """Return the last verified pose, else the last known one (hint, pose before a loss)."""

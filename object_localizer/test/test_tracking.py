@@ -205,19 +205,10 @@ def test_unusable_clouds_raise_clear_errors(arm):
         tracker.update(np.full((50, 3), np.nan), 0)
 
 
-def test_identical_parts_are_told_apart_only_by_a_known_pose():
-    """
-    link_base and link_arm are the same brick.
-
-    Acquisition from nothing cannot tell which is which, so nothing is published; with hints (even
-    5 mm off) each gets its own brick.
-    """
-    from object_localizer.tracking import same_shape
+def _two_bricks():
+    """Return models, true poses, a stereo-like cloud and a global search of the two bricks."""
     meshes = {n: load_obj(find_model(n)) for n in ('link_base', 'link_arm')}
     models = {n: prepare_tracking_model(m) for n, m in meshes.items()}
-    assert same_shape(models['link_base'], models['link_arm'])
-    assert not same_shape(models['link_base'], prepare_tracking_model(load_obj(find_model(
-        'peg'))))
     truth = {'link_base': make_transform(rotation_about_axis([1, 0, 0], 2.2), [-0.06, 0, 0.6]),
              'link_arm': make_transform(rotation_about_axis([1, 0.2, 0], 2.0), [0.08, 0.02, 0.62])}
     rng = np.random.default_rng(11)
@@ -230,16 +221,36 @@ def test_identical_parts_are_told_apart_only_by_a_known_pose():
         # the other brick's pose expressed for this model (same shape, different origin)
         return [truth[other] @ _origin_shift(models[other], model), truth[model.name]]
 
+    return models, truth, cloud, both_bricks
+
+
+def _hinted_twin_trackers(models, acquirer, hints):
+    # a short ICP reach, so that a hint 12 mm off is rejected as a pose (and acquisition
+    # runs) while it is still a known pose near its own brick
+    settings = TrackerSettings(max_distance=0.003)
+    trackers = {n: ObjectTracker(models[n], settings, acquirer=acquirer) for n in models}
+    for n, t in trackers.items():
+        t.twins = [o for m, o in trackers.items() if m != n]
+        if hints is not None:
+            t.reset(hints[n])
+    return trackers
+
+
+def test_identical_parts_are_told_apart_only_by_a_known_pose():
+    """
+    link_base and link_arm are the same brick.
+
+    Acquisition from nothing cannot tell which is which, so nothing is published; with hints (even
+    12 mm off) each gets its own brick.
+    """
+    from object_localizer.tracking import same_shape
+    models, truth, cloud, both_bricks = _two_bricks()
+    assert same_shape(models['link_base'], models['link_arm'])
+    assert not same_shape(models['link_base'], prepare_tracking_model(load_obj(find_model(
+        'peg'))))
     for hinted in (False, True):
-        # a short ICP reach, so that a hint 12 mm off is rejected as a pose (and acquisition
-        # runs) while it is still a known pose near its own brick
-        settings = TrackerSettings(max_distance=0.003)
-        trackers = {n: ObjectTracker(models[n], settings, acquirer=both_bricks)
-                    for n in truth}
-        for n, t in trackers.items():
-            t.twins = [o for m, o in trackers.items() if m != n]
-            if hinted:
-                t.reset(make_transform(np.eye(3), [0.0, 0.012, 0.0]) @ truth[n])
+        hints = {n: make_transform(np.eye(3), [0.0, 0.012, 0.0]) @ T for n, T in truth.items()}
+        trackers = _hinted_twin_trackers(models, both_bricks, hints if hinted else None)
         others = []
         for n, t in trackers.items():
             res = t.update(cloud, 0, others)
@@ -249,6 +260,30 @@ def test_identical_parts_are_told_apart_only_by_a_known_pose():
                 assert res.pose is not None and 'initial pose rejected' in res.reason, res.reason
                 assert add_s(res.pose, truth[n], models[n].points) < 0.001
                 others.append((models[n], res.pose))
+
+
+def test_identical_parts_with_stale_hints_are_named_by_the_nearest_assignment():
+    """
+    Hints of an earlier frame (a free-running camera) still tell the bricks apart.
+
+    Each hint is 45 mm from its brick (beyond the re-acquisition radius of a single part) but
+    the assignment of the two places to the two names is clearly nearer the hints than the
+    swapped one: each brick gets its own name. Hints halfway between the bricks decide nothing.
+    """
+    models, truth, cloud, both_bricks = _two_bricks()
+    stale = {n: make_transform(np.eye(3), [0.0, 0.045, 0.0]) @ T for n, T in truth.items()}
+    trackers = _hinted_twin_trackers(models, both_bricks, stale)
+    assert trackers['link_base'].settings.twin_reacquire_radius < 0.045
+    others = []
+    for n, t in trackers.items():
+        res = t.update(cloud, 0, others)
+        assert res.pose is not None, res.reason
+        assert add_s(res.pose, truth[n], models[n].points) < 0.001, (n, res.reason)
+        others.append((models[n], res.pose))
+    middle = 0.5 * (truth['link_base'][:3, 3] + truth['link_arm'][:3, 3])
+    halfway = {n: make_transform(T[:3, :3], middle) for n, T in truth.items()}
+    res = _hinted_twin_trackers(models, both_bricks, halfway)['link_base'].update(cloud, 0, [])
+    assert res.pose is None and 'ambiguous' in res.reason, res.reason
 
 
 def _origin_shift(from_model, to_model):

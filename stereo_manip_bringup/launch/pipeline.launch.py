@@ -11,7 +11,9 @@ this repository's own environment use ``scripts/ros2run stereo_manip_bringup dem
 
 The nodes, parameters and remappings are the demo's (``stereo_manip_bringup.demo.STAGES``), so
 the launched graph is the one the demo scores; here the synthetic camera free-runs at ``rate``
-instead of waiting for a software trigger. ``use_camera:=false`` leaves the camera out, for a
+instead of waiting for a software trigger, and the IP modellers and the joint estimator work
+at the bounded rates of ``LIVE_PARAMETERS`` (they would otherwise take the pose path's CPU).
+``use_camera:=false`` leaves the camera out, for a
 real stereo driver publishing ``left/image_rect``, ``right/image_rect`` and camera infos.
 ``multihost:=true`` gives every node the multi-host environment
 (``stereo_manip_bringup.deployment``: SUBNET discovery, the shipped Fast DDS profile).
@@ -22,7 +24,7 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from stereo_manip_bringup.demo import STAGES
+from stereo_manip_bringup.demo import LIVE_PARAMETERS, STAGES
 from stereo_manip_bringup.deployment import multihost_environment
 
 
@@ -42,6 +44,7 @@ def _nodes(context):
                 continue
             params.update(trigger=False, rate=rate)
             remappings.pop('trigger', None)
+        params.update(LIVE_PARAMETERS.get(spec.executable, {}))   # free-running: bounded rates
         actions.append(Node(package=spec.package, executable=spec.executable,
                             name=spec.node_name, parameters=[params],
                             remappings=list(remappings.items()),

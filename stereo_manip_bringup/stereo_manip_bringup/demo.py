@@ -117,11 +117,19 @@ def _camera(scene: str, frame_step: int = 1) -> NodeSpec:
 # Each fit starts its degree search one below the previous fit's degree (warm start).
 IP_GRAPH_PARAMETERS: Dict[str, Any] = {'max_points': 2000, 'mesh_resolution': 32,
                                        'warm_start': True}
-# With a free-running camera the modellers fit at most once per 2 s each (the clouds between
-# are skipped, not queued): a fit costs 0.2-0.5 s CPU, so each takes at most ~25 % of a core
-# and cannot starve the pose path on 2 cores; the IP rate is then ~0.5 Hz per object by design.
-# (Triggered demo stages wait for every frame's IP and keep fitting every cloud.)
-IP_LIVE_PARAMETERS: Dict[str, Any] = {'min_fit_interval_s': 2.0}
+# With a free-running camera the consumers of the poses work at a bounded rate, so that they
+# cannot starve the pose path on 2 cores (triggered demo stages wait for every frame's result
+# and keep working on every frame):
+# - the IP modellers fit at most once per 2 s each (the clouds between are skipped and counted,
+#   not queued): a fit costs 0.2-0.5 s CPU, so each takes at most ~25 % of a core; the IP rate
+#   is ~0.5 Hz per object by design;
+# - the joint estimator re-estimates every 30th pose pair (0.33 Hz at a 10 Hz camera; every pose
+#   still enters its window): every 2nd took ~55 % of a core in the live revolute_pair graph,
+#   every 10th ~40 % (an estimate costs 0.5-3 s CPU).
+LIVE_PARAMETERS: Dict[str, Dict[str, Any]] = {
+    'ip_modeler_node': {'min_fit_interval_s': 2.0},
+    'joint_estimator_node': {'estimate_every': 30},
+}
 
 SCENE_DISPARITY_BANDS: Dict[str, Tuple[int, int]] = {
     'peg_in_hole': (48, 112),      # (min_disparity, max_disparity = count): 48..159 px
