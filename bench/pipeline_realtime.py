@@ -18,10 +18,11 @@ free-running at ``rate`` Hz, 640x480, and observes it from this process:
 The peer in the same run is the graph as main configured it (``scene:rate:peer``): full
 disparity range 0-159 px, every pixel in the cloud, numba's default threading layer (OpenMP
 here), OpenBLAS with one thread per core, the IP modeller's default point budget. Ours adds
-``stereo_manip_bringup.demo.LIVE_PARAMETERS`` to the pose consumers: the IP modellers fit at
-most once per 2 s each and the joint estimator re-estimates every 10th pose pair (with a
-free-running camera their output rates, ~0.5 Hz per object and 1 Hz, are design figures; the
-inputs in between are skipped and counted, not dropped frames of the pose path).
+``stereo_manip_bringup.demo.LIVE_PARAMETERS``: the stereo node's kernels on one thread, the IP
+modellers fitting at most once per 2 s each and the joint estimator re-estimating every 30th
+pose pair (with a free-running camera their output rates, ~0.5 Hz per object and 0.33 Hz, are
+design figures; the inputs in between are skipped and counted, not dropped frames of the pose
+path).
 
 Usage::
 
@@ -111,7 +112,7 @@ def graph_specs(scene: str, rate: float, peer: bool) -> list:
         if spec.executable == 'stereo_depth_node' and peer:
             spec.parameters.update(min_disparity=0, max_disparity=160, point_decimation=1,
                                    numba_threading_layer='default')
-        if not peer:      # bounded rates of the pose consumers when free-running
+        if not peer:      # the free-running settings (bounded rates, one stereo thread)
             spec.parameters.update(LIVE_PARAMETERS.get(spec.executable, {}))
         if peer:
             spec.env = {}

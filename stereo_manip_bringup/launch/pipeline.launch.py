@@ -11,9 +11,9 @@ this repository's own environment use ``scripts/ros2run stereo_manip_bringup dem
 
 The nodes, parameters and remappings are the demo's (``stereo_manip_bringup.demo.STAGES``), so
 the launched graph is the one the demo scores; here the synthetic camera free-runs at ``rate``
-instead of waiting for a software trigger, and the IP modellers and the joint estimator work
-at the bounded rates of ``LIVE_PARAMETERS`` (they would otherwise take the pose path's CPU).
-``use_camera:=false`` leaves the camera out, for a
+instead of waiting for a software trigger, with the free-running settings of
+``LIVE_PARAMETERS`` (one stereo thread; IP modellers and joint estimator at bounded rates, which
+would otherwise take the pose path's CPU). ``use_camera:=false`` leaves the camera out, for a
 real stereo driver publishing ``left/image_rect``, ``right/image_rect`` and camera infos.
 ``multihost:=true`` gives every node the multi-host environment
 (``stereo_manip_bringup.deployment``: SUBNET discovery, the shipped Fast DDS profile).

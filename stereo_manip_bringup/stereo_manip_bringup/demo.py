@@ -126,7 +126,11 @@ IP_GRAPH_PARAMETERS: Dict[str, Any] = {'max_points': 2000, 'mesh_resolution': 32
 # - the joint estimator re-estimates every 30th pose pair (0.33 Hz at a 10 Hz camera; every pose
 #   still enters its window): every 2nd took ~55 % of a core in the live revolute_pair graph,
 #   every 10th ~40 % (an estimate costs 0.5-3 s CPU).
+# - the stereo node's parallel kernels run on one thread: on 2 cores shared with the localizer
+#   a second thread bought little wall time and cost ~40 % more CPU per frame (block matching
+#   67 vs 48 ms CPU per 640x480 pair under load).
 LIVE_PARAMETERS: Dict[str, Dict[str, Any]] = {
+    'stereo_depth_node': {'numba_threads': 1},
     'ip_modeler_node': {'min_fit_interval_s': 2.0},
     'joint_estimator_node': {'estimate_every': 30},
 }
