@@ -271,19 +271,25 @@ class PoseJudge:
         self.errors: Dict[int, float] = {}
 
     def error(self, stamp: int, data: bytes) -> Optional[float]:
+        """Return the ADD-S [m] of a corrected pose, cached by stamp (a kill trial asks again)."""
+        if stamp not in self.errors:
+            err = self.measure(stamp, data)
+            if err is None:
+                return None
+            self.errors[stamp] = err
+        return self.errors[stamp]
+
+    def measure(self, stamp: int, data: bytes) -> Optional[float]:
+        """Return the ADD-S [m] of any peg pose message against its stamp's truth (no cache)."""
         from rclpy.serialization import deserialize_message
         from object_localizer.evaluation import add_s
         from stereo_manip_tools.conversions import pose_to_matrix
-        if stamp in self.errors:
-            return self.errors[stamp]
         truth = next((d for s, d in reversed(self.graph.kept['truth']) if s == stamp), None)
         if truth is None:
             return None
         cls = self.graph.classes['truth']
-        err = float(add_s(pose_to_matrix(deserialize_message(data, cls).pose),
-                          pose_to_matrix(deserialize_message(truth, cls).pose), self.points))
-        self.errors[stamp] = err
-        return err
+        return float(add_s(pose_to_matrix(deserialize_message(data, cls).pose),
+                           pose_to_matrix(deserialize_message(truth, cls).pose), self.points))
 
 
 #: frames of one loop of the peg_in_hole scene (stereo_depth.synthetic.make_scene)
@@ -441,24 +447,22 @@ def run_soak(rate: float, minutes: float, warmup_s: float, log) -> Dict[str, Any
                            'corrected_poses': len(graph.arrivals['corrected'])}
     out['output_rate_hz'] = {k: len(v) / span for k, v in graph.arrivals.items()}
     judge = PoseJudge(graph)
-    errs = [judge.error(st, d) for st, d in graph.kept['corrected']]
-    errs = [e for e in errs if e is not None]
+    corrected = {st: judge.error(st, d) for st, d in graph.kept['corrected']}
+    errs = [corrected[st] for st, _ in graph.kept['corrected'] if corrected[st] is not None]
     out['corrected_add_s_mm'] = _stats([e * 1e3 for e in errs])
     out['corrected_wrong_fraction'] = (sum(e > WRONG_POSE_M for e in errs) / len(errs)
                                        if errs else float('nan'))
     # where a wrong corrected pose came from: the localizer's pose of the same stamp, judged
-    raw_judge = PoseJudge(graph)     # its own cache: raw and corrected share their stamps
-    raw = {st: raw_judge.error(st, d) for st, d in graph.kept['pose']}
+    raw = {st: judge.measure(st, d) for st, d in graph.kept['pose']}
     raw_errs = [e for e in raw.values() if e is not None]
     out['raw_add_s_mm'] = _stats([e * 1e3 for e in raw_errs])
     out['raw_wrong_fraction'] = (sum(e > WRONG_POSE_M for e in raw_errs) / len(raw_errs)
                                  if raw_errs else float('nan'))
     frame_of = {st: i for i, (st, _) in enumerate(graph.arrivals['truth'])}
     out['wrong_corrected_frames'] = [
-        {'camera_frame_index': frame_of.get(st), 'corrected_add_s_mm': judge.errors[st] * 1e3,
+        {'camera_frame_index': frame_of.get(st), 'corrected_add_s_mm': e * 1e3,
          'raw_add_s_mm': None if raw.get(st) is None else raw[st] * 1e3}
-        for st, _ in graph.kept['corrected']
-        if judge.errors.get(st) is not None and judge.errors[st] > WRONG_POSE_M]
+        for st, e in corrected.items() if e is not None and e > WRONG_POSE_M]
     graph.kept.clear()
     out['loadavg_1min_samples'] = loads
     growth = {}

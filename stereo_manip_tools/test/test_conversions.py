@@ -156,23 +156,21 @@ def _cloud(points, **overrides):
     return msg
 
 
+def _xyz_fields(names='xyz', offsets=(0, 4, 8), datatypes=(7, 7, 7)):
+    """Make PointFields (datatype 7 = FLOAT32) with the given names, offsets and datatypes."""
+    return [PointField(name=n, offset=o, datatype=d, count=1)
+            for n, o, d in zip(names, offsets, datatypes)]
+
+
 @pytest.mark.parametrize('change, reason', [
     ({'point_step': 0}, 'bad_layout'),
     ({'height': 2, 'width': 2, 'row_step': 4}, 'bad_layout'),
     ({'width': 10}, 'truncated'),
-    ({'fields': [PointField(name='x', offset=0, datatype=7, count=1),
-                 PointField(name='y', offset=4, datatype=7, count=1),
-                 PointField(name='z', offset=40, datatype=7, count=1)]}, 'bad_field'),
-    ({'fields': [PointField(name='x', offset=0, datatype=0, count=1),
-                 PointField(name='y', offset=4, datatype=7, count=1),
-                 PointField(name='z', offset=8, datatype=7, count=1)]}, 'bad_datatype'),
-    ({'fields': [PointField(name='x', offset=0, datatype=99, count=1),
-                 PointField(name='y', offset=4, datatype=7, count=1),
-                 PointField(name='z', offset=8, datatype=7, count=1)]}, 'bad_datatype'),
-    ({'fields': [PointField(name='x', offset=0, datatype=7, count=1),
-                 PointField(name='x', offset=4, datatype=7, count=1),
-                 PointField(name='z', offset=8, datatype=7, count=1)]}, 'bad_field'),
-    ({'fields': [PointField(name='x', offset=0, datatype=7, count=1)]}, 'missing_field'),
+    ({'fields': _xyz_fields(offsets=(0, 4, 40))}, 'bad_field'),
+    ({'fields': _xyz_fields(datatypes=(0, 7, 7))}, 'bad_datatype'),
+    ({'fields': _xyz_fields(datatypes=(99, 7, 7))}, 'bad_datatype'),
+    ({'fields': _xyz_fields(names='xxz')}, 'bad_field'),
+    ({'fields': _xyz_fields(names='x', offsets=(0,), datatypes=(7,))}, 'missing_field'),
     ({'width': MAX_POINTS_RECEIVED + 1}, 'too_large'),
 ])
 def test_pointcloud_layout_errors_name_their_reason(change, reason):
@@ -188,8 +186,7 @@ def test_pointcloud_big_endian_and_row_padding_are_honoured():
     rows = np.zeros((2, 40), dtype=np.uint8)          # 2 rows of 2 points, 16 bytes padding
     rows[:, :24] = P.astype('>f4').view(np.uint8).reshape(2, 24)
     msg = PointCloud2(height=2, width=2, point_step=12, row_step=40, is_bigendian=True,
-                      fields=[PointField(name=n, offset=4 * i, datatype=7, count=1)
-                              for i, n in enumerate('xyz')], data=rows.tobytes())
+                      fields=_xyz_fields(), data=rows.tobytes())
     assert np.allclose(read_pointcloud2(msg).points, P, atol=1e-6)
 
 
