@@ -136,6 +136,11 @@ def spin_until_shutdown(node: Any) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:  # noqa: BLE001 - RCLError is not importable as a stable name
+        if rclpy.ok():
+            raise
+        # Ctrl-C shut the context down between the executor's checks: the spin's wait set
+        # fails with RCLError instead of ExternalShutdownException; a normal shutdown
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
