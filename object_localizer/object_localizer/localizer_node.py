@@ -17,7 +17,6 @@ counted), so the node keeps up with a free-running camera. For every model in ``
 from __future__ import annotations
 
 from dataclasses import replace
-import sys
 import threading
 from typing import Dict, List
 
@@ -32,7 +31,6 @@ from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_trac
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
     SetParametersResult
 import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
@@ -44,7 +42,8 @@ from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
     input_qos_descriptor, input_qos_profile, int_descriptor, reject_nonfinite_parameters, \
     string_descriptor
-from stereo_manip_tools.robustness import create_node_or_exit, InputRejections
+from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
+    spin_until_shutdown
 from stereo_manip_tools.tf import PoseTfPublisher
 from stereo_manip_tools.transforms import pose_from_xyz_quaternion
 from stereo_manip_tools.worker import NewestOnlyWorker
@@ -334,16 +333,5 @@ class ObjectLocalizerNode(Node):
 def main(args=None) -> None:
     """Run the node."""
     rclpy.init(args=args)
-    node = None
-    try:
-        node = create_node_or_exit(ObjectLocalizerNode, 'object_localizer_node')
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (FileNotFoundError, ValueError) as exc:
-        print(f'object_localizer_node: {exc}', file=sys.stderr)
-        raise SystemExit(1)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    node = create_node_or_exit(ObjectLocalizerNode, 'object_localizer_node')
+    spin_until_shutdown(node)
