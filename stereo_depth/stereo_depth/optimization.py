@@ -657,7 +657,7 @@ def _census_box_wta(cl, cr, nd, rw, rh, invalid, nchunks, uniqueness):
         # ring of Hamming rows: row r lives in slot r % nring until it leaves the window
         nring = 2 * rh + 2
         ring = np.empty((nring, w, nd), np.uint8)
-        crr = np.empty(w, np.uint64)
+        crr = np.empty(w, cr.dtype)
         hs = np.zeros(nd, np.uint16)
         rmin = np.empty(w, np.uint16)
         rarg = np.empty(w, np.int32)
@@ -736,6 +736,8 @@ def census_block_matching(left: np.ndarray, right: np.ndarray, max_disparity: in
         raise ValueError(f'uniqueness must be >= 0, got {uniqueness}')
     cl = census_transform(left, census_window)
     cr = census_transform(right, census_window)
+    if nbits <= 32:     # 32-bit codes: the Hamming distances vectorise (~20 % faster)
+        cl, cr = cl.astype(np.uint32), cr.astype(np.uint32)
     nchunks = max(1, numba.get_num_threads())
     return _census_box_wta(cl, cr, int(max_disparity), ww // 2, wh // 2, np.uint8(nbits),
                            nchunks, float(uniqueness))
