@@ -194,8 +194,7 @@ def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
     """Per-stage CPU per frame in this process (part 2 of the module docstring)."""
     import numba
 
-    from stereo_depth import matching_cost as mc, optimization as op, pipeline as pl, \
-        refinement as rf
+    from stereo_depth import optimization as op, pipeline as pl, refinement as rf
     from stereo_depth.stereo_depth_node import prepare_pair, stereo_geometry
     from stereo_manip_tools.conversions import xyz_to_pointcloud2
 
@@ -222,8 +221,8 @@ def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
         geo = stereo_geometry(infos[0], infos[1], w, h)
         lc = np.ascontiguousarray(limg[:, dmin:])
         rc = np.ascontiguousarray(rimg[:, :w - dmin])
-        cl = timed('census transforms', mc.census_transform, lc, cw)
-        cr = mc.census_transform(rc, cw)
+        cl = timed('census transforms', op.census_codes, lc, cw)
+        cr = op.census_codes(rc, cw)
         times['census transforms'][-1] *= 2.0      # both views cost alike; timed once
         dl, dr = timed('cost + aggregation + WTA (fused)', op._census_box_wta, cl, cr, nd,
                        win[0] // 2, win[1] // 2, nbits, 1, 0.0)
