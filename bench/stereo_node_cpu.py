@@ -18,6 +18,9 @@ CPU per frame of ``stereo_depth_node`` at 640x480 in the live configuration, spl
    (``pipeline.cloud_points`` + ``conversions.xyz_to_pointcloud2``) measured on the same frames
    as the peer of the packed cloud (``pipeline.cloud_message_data``).
 
+3. Main's per-frame path against this branch's, alternated frame by frame in this process
+   (``paired_main_vs_branch``): the change measured under one and the same load.
+
 Goals: node process CPU per frame median <= 50 ms (half a core at 10 Hz: the localiser and
 the contact node need the rest of the two cores); cloud build + pack p95 <= 10 ms.
 
@@ -249,8 +252,88 @@ def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
             'numba_threads': int(numba.get_num_threads())}
 
 
+def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
+                          rounds: int = 2) -> Dict[str, Any]:
+    """
+    CPU per frame of main's per-frame path and of this branch's, alternated frame by frame.
+
+    The shared machine's load moves CPU times by +-15 ms between runs a minute apart (the
+    node-process figures of part 1 cannot separate a 10 ms change); alternating the two paths
+    on every frame gives both the same load, and the per-frame difference is the change.
+    main's path: 64-bit census codes into the fused kernel, ``nan_to_num`` before the median,
+    ``cloud_points`` + ``xyz_to_pointcloud2``. This branch's: ``compute_disparity`` (32-bit
+    codes, ``np.where``) + ``cloud_message_data`` + ``float32_fields_to_pointcloud2``. Both
+    include decoding, depth and the message; results are checked equal on every frame.
+    """
+    import cv2
+    import numba
+
+    from stereo_depth import matching_cost as mc, optimization as op, pipeline as pl, \
+        refinement as rf
+    from stereo_depth.stereo_depth_node import prepare_pair, stereo_geometry
+    from stereo_manip_tools.conversions import float32_fields_to_pointcloud2, \
+        xyz_to_pointcloud2
+
+    numba.set_num_threads(1)
+    dmin, nd = int(params['min_disparity']), int(params['max_disparity'])
+    dec = int(params['point_decimation'])
+    p = pl.method_defaults('block_matching')
+    cw, win = tuple(p['census_window']), tuple(p['window'])
+    nbits = np.uint8(cw[0] * cw[1] - 1)
+
+    def main_path(lm, rm):
+        limg, rimg, colours = prepare_pair(lm, rm)
+        h, w = limg.shape
+        geo = stereo_geometry(infos[0], infos[1], w, h)
+        lc = np.ascontiguousarray(limg[:, dmin:])
+        rc = np.ascontiguousarray(rimg[:, :w - dmin])
+        dl, dr = op._census_box_wta(mc.census_transform(lc, cw), mc.census_transform(rc, cw),
+                                    nd, win[0] // 2, win[1] // 2, nbits, 1, 0.0)
+        d = rf.left_right_check(dl, dr, p['lr_max_diff'])
+        d = rf.remove_speckles(d, p['speckle_size'], p['speckle_diff'])
+        full = cv2.medianBlur(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0), p['median'])
+        d = rf._nan_median(d, p['median'] // 2, full, True)
+        d = rf.fill_invalid(d, 'row')
+        d[(d < 0.5) | (d > nd - 1.5)] = np.nan
+        disp = np.full((h, w), np.nan, np.float32)
+        disp[:, dmin:] = d + np.float32(dmin)
+        depth = pl.disparity_to_depth(disp, geo['fx'], geo['baseline'], geo['doffs'])
+        pts, rgb = pl.cloud_points(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'], dec,
+                                   False, colours)
+        return xyz_to_pointcloud2(pts, lm.header)
+
+    def branch_path(lm, rm):
+        limg, rimg, colours = prepare_pair(lm, rm)
+        h, w = limg.shape
+        geo = stereo_geometry(infos[0], infos[1], w, h)
+        disp = pl.compute_disparity(limg, rimg, 'block_matching', nd, min_disparity=dmin)
+        depth = pl.disparity_to_depth(disp, geo['fx'], geo['baseline'], geo['doffs'])
+        packed = pl.cloud_message_data(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'], dec,
+                                       False, colours)
+        return float32_fields_to_pointcloud2(packed.buffer, packed.fields, lm.header,
+                                             is_dense=packed.is_dense)
+
+    main_path(*frames[0])
+    branch_path(*frames[0])
+    t = {'main': [], 'branch': []}
+    same = True
+    for r in range(rounds):
+        for i, (lm, rm) in enumerate(frames):
+            out = {}
+            order = (('main', main_path), ('branch', branch_path))
+            for name, f in (order if (i + r) % 2 == 0 else order[::-1]):
+                c0 = time.process_time()
+                out[name] = f(lm, rm)
+                t[name].append(1e3 * (time.process_time() - c0))
+            same &= bytes(out['main'].data) == bytes(out['branch'].data)
+    diff = [a - b for a, b in zip(t['main'], t['branch'])]
+    return {'cpu_ms_per_frame': {'main': stats(t['main']), 'branch': stats(t['branch']),
+                                 'main_minus_branch': stats(diff)},
+            'clouds_identical': bool(same), 'frames': len(frames), 'rounds': rounds}
+
+
 def main() -> None:
-    """Run both parts and write the report."""
+    """Run the three parts and write the report."""
     ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--frames', type=int, default=60, help='pairs measured')
     ap.add_argument('--note', default='', help='recorded in the JSON')
@@ -260,10 +343,13 @@ def main() -> None:
     load_start = list(os.getloadavg())
     node = node_process(frames, infos, params)
     split = stage_split(frames, infos, params)
+    paired = paired_main_vs_branch(frames, infos, params)
     load_end = list(os.getloadavg())
     for k, v in split['cpu_ms'].items():
         print(f"{k:52s} {v['median']:7.2f} {v['p95']:7.2f} {v['max']:7.2f} ms CPU")
     c = node['cpu_ms_per_frame']
+    for k, v in paired['cpu_ms_per_frame'].items():
+        print(f"paired, {k:30s} {v['median']:7.2f} {v['p95']:7.2f} {v['max']:7.2f} ms CPU")
     print('node threads [ms CPU per frame]:', {k: round(v, 2) for k, v in
                                                node['cpu_ms_per_frame_by_thread'].items()})
     print(f"node process: {c['median']:.1f} / {c['p95']:.1f} / {c['max']:.1f} ms CPU per frame "
@@ -274,9 +360,14 @@ def main() -> None:
              50.0, '<=', c['median']),
         goal('cloud build + pack CPU per frame p95 [ms]', 10.0, '<=', packed['p95']),
         goal('clouds lost in lock-step', 0, '==', node['clouds_lost']),
+        goal('per-frame CPU main - branch, median of paired frames [ms] (> 0: cheaper)', 0.0,
+             '>', paired['cpu_ms_per_frame']['main_minus_branch']['median']),
+        goal('clouds of main and branch identical on every paired frame', 1, '==',
+             int(paired['clouds_identical'])),
     ]
     write_report('stereo_node_cpu', goals, scene=SCENE, image_size=[640, 480],
                  node_process=node, in_process_stage_split=split,
+                 paired_main_vs_branch=paired,
                  load_average={'start': load_start, 'end': load_end}, note=args.note)
 
 
