@@ -121,12 +121,33 @@ def _popcount64(typingctx, value):
     return sig, codegen
 
 
+@intrinsic
+def _popcount_like(typingctx, value, like):
+    # popcount of ``value`` at the width of ``like``'s type (uint32 or uint64): numba widens
+    # uint32 ^ uint32 to 64 bits, and a 64-bit popcount does not vectorise on AVX2, a 32-bit
+    # one does (census codes of at most 32 bits: 5x5 windows).
+    if not isinstance(value, types.Integer) or not isinstance(like, types.Integer):
+        return None
+    sig = like(value, like)
+
+    def codegen(context, builder, signature, args):
+        v = args[0]
+        ty = context.get_value_type(signature.return_type)
+        if v.type.width > ty.width:
+            v = builder.trunc(v, ty)
+        elif v.type.width < ty.width:
+            v = builder.zext(v, ty)
+        return builder.ctpop(v)
+
+    return sig, codegen
+
+
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath=True, boundscheck=False)
 def _hamming_volume(cl, cr, ndisp, invalid):
     h, w = cl.shape
     out = np.empty((h, w, ndisp), dtype=np.uint8)
     for y in numba.prange(h):
-        crr = np.empty(w, np.uint64)
+        crr = np.empty(w, cr.dtype)
         _reverse_row(cr[y], crr)
         _hamming_row(cl[y], crr, ndisp, invalid, out[y])
     return out
@@ -307,6 +328,6 @@ def _hamming_row(cl_row, cr_reversed, ndisp, invalid, out):
         src = cr_reversed[k0:k0 + n]
         o = out[x]
         for d in range(n):
-            o[d] = np.uint8(_popcount64(a ^ src[d]))
+            o[d] = np.uint8(_popcount_like(a ^ src[d], a))
         for d in range(n, ndisp):
             o[d] = invalid

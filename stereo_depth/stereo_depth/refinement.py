@@ -208,7 +208,8 @@ def median_filter(disparity: np.ndarray, size: int = 3) -> np.ndarray:
     if size <= 5:
         import cv2
 
-        full = cv2.medianBlur(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0), size)
+        # non-finite -> 0 (np.where: half the CPU of nan_to_num's three passes)
+        full = cv2.medianBlur(np.where(np.isfinite(d), d, np.float32(0.0)), size)
         return _nan_median(d, size // 2, full, True)
     return _nan_median(d, size // 2, d, False)     # OpenCV's float median stops at 5x5
 

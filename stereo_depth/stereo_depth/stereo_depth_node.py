@@ -51,11 +51,11 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, RegionOfInterest
-from stereo_depth.pipeline import (available_methods, cloud_points, compute_disparity,
+from stereo_depth.pipeline import (available_methods, cloud_message_data, compute_disparity,
                                    disparity_to_depth, method_defaults)
-from stereo_manip_tools.conversions import (CameraInfoError, image_to_numpy, numpy_to_image,
-                                            stamp_to_ns, stereo_parameters_from_camera_info,
-                                            xyz_to_pointcloud2)
+from stereo_manip_tools.conversions import (CameraInfoError, float32_fields_to_pointcloud2,
+                                            image_to_numpy, numpy_to_image, stamp_to_ns,
+                                            stereo_parameters_from_camera_info)
 from stereo_manip_tools.diagnostics import NodeDiagnostics
 from stereo_manip_tools.parameters import bool_descriptor, float_descriptor, \
     INPUT_QOS_CHOICES, input_qos_descriptor, input_qos_profile, int_descriptor, \
@@ -456,8 +456,8 @@ class StereoDepthNode(Node):
         try:
             disp = compute_disparity(left, right, params['method'], ndisp, min_disparity=dmin,
                                      **mp)
-            cloud_points(disparity_to_depth(disp, 100.0, 0.1), 100.0, 100.0, w / 2, 16.0,
-                         int(params['point_decimation']), bool(params['organized_cloud']))
+            cloud_message_data(disparity_to_depth(disp, 100.0, 0.1), 100.0, 100.0, w / 2, 16.0,
+                               int(params['point_decimation']), bool(params['organized_cloud']))
         except ValueError as exc:       # e.g. a band the warm-up image cannot hold
             self.get_logger().warning(f'warm-up skipped: {exc}')
             return
@@ -512,16 +512,11 @@ class StereoDepthNode(Node):
         if want_depth:
             self.pub_depth.publish(numpy_to_image(depth, '32FC1', header))
         if want_points:
-            organized = bool(params['organized_cloud'])
-            pts, rgb = cloud_points(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'],
-                                    int(params['point_decimation']), organized, colours)
-            flat = pts.reshape(-1, 3)
-            msg = xyz_to_pointcloud2(flat, header,
-                                     rgb=None if rgb is None else rgb.reshape(-1, 3))
-            if organized:
-                msg.height, msg.width = int(pts.shape[0]), int(pts.shape[1])
-                msg.row_step = msg.point_step * msg.width
-                msg.is_dense = False
+            packed = cloud_message_data(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'],
+                                        int(params['point_decimation']),
+                                        bool(params['organized_cloud']), colours)
+            msg = float32_fields_to_pointcloud2(packed.buffer, packed.fields, header,
+                                                is_dense=packed.is_dense)
             self.pub_points.publish(msg)
 
     @staticmethod

@@ -10,7 +10,8 @@ from stereo_depth.matching_cost import (absolute_difference_cost, census_cost, c
 from stereo_depth.optimization import (belief_propagation, census_block_matching,
                                        semi_global_matching, sgm_disparities, stereo_energy,
                                        winner_take_all, winner_take_all_both)
-from stereo_depth.pipeline import (available_methods, cloud_points, compute_disparity,
+from stereo_depth.pipeline import (available_methods, cloud_message_data, cloud_points,
+                                   compute_disparity,
                                    disparity_to_depth,
                                    disparity_to_points)
 from stereo_depth.refinement import (fill_invalid, left_right_check, median_filter,
@@ -424,6 +425,49 @@ def test_cloud_points_decimates_and_organises(organized):
         np.testing.assert_array_equal(rgb, colours[::2, ::2][kept])
     with pytest.raises(ValueError, match='decimation'):
         cloud_points(depth, fx, fx, cx, cy, 0)
+
+
+@pytest.mark.parametrize('organized', [False, True])
+@pytest.mark.parametrize('colour', [False, True])
+def test_packed_cloud_is_the_old_cloud_byte_for_byte(organized, colour):
+    """cloud_message_data == cloud_points + xyz_to_pointcloud2, and reads back the same xyz."""
+    from stereo_manip_tools.conversions import (float32_fields_to_pointcloud2,
+                                                pointcloud2_to_array, xyz_to_pointcloud2)
+    rng = np.random.default_rng(3)
+    h, w, s = 47, 61, 2                       # odd sizes: the last row/column are kept
+    fx, fy, cx, cy = 525.3, 523.9, 30.7, 22.1
+    depth = rng.uniform(0.3, 2.0, (h, w)).astype(np.float32)
+    depth[rng.random((h, w)) < 0.2] = np.nan
+    colours = rng.integers(0, 256, (h, w, 3), dtype=np.uint8) if colour else None
+    packed = cloud_message_data(depth, fx, fy, cx, cy, s, organized, colours)
+    pts, rgb = cloud_points(depth, fx, fy, cx, cy, s, organized, colours)
+    old = xyz_to_pointcloud2(pts.reshape(-1, 3),
+                             rgb=None if rgb is None else rgb.reshape(-1, 3))
+    new = float32_fields_to_pointcloud2(packed.buffer, packed.fields,
+                                        is_dense=packed.is_dense)
+    assert bytes(new.data) == bytes(old.data)            # bit-identical coordinates and colours
+    assert [f.name for f in new.fields] == [f.name for f in old.fields]
+    assert [f.offset for f in new.fields] == [f.offset for f in old.fields]
+    assert new.point_step == old.point_step
+    if organized:
+        assert (new.height, new.width) == (24, 31) and not new.is_dense
+        assert new.row_step == new.point_step * 31
+    else:
+        assert (new.height, new.width) == (1, int(np.isfinite(depth[::s, ::s]).sum()))
+        assert new.is_dense
+    xyz = pointcloud2_to_array(new)                      # round trip through the reader
+    z = depth[::s, ::s]
+    np.testing.assert_allclose(xyz[:, 2], z[np.isfinite(z)], rtol=1e-7)
+    v, u = np.nonzero(np.isfinite(z))
+    np.testing.assert_allclose(xyz[:, 0], (u * s - cx) * z[v, u] / fx, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(xyz[:, 1], (v * s - cy) * z[v, u] / fy, rtol=1e-5, atol=1e-7)
+    empty = cloud_message_data(np.full((4, 4), np.nan, np.float32), fx, fy, cx, cy)
+    assert empty.buffer.shape == (1, 0, 3) and empty.is_dense
+    assert float32_fields_to_pointcloud2(empty.buffer, empty.fields).width == 0
+    with pytest.raises(ValueError, match='decimation'):
+        cloud_message_data(depth, fx, fy, cx, cy, 0)
+    with pytest.raises(ValueError, match='colours'):
+        cloud_message_data(depth, fx, fy, cx, cy, 1, False, np.zeros((h, w), np.uint8))
 
 
 def test_evaluation_metrics_by_hand():

@@ -227,6 +227,60 @@ def test_unsubscribed_outputs_cost_nothing(ros_node):
 
 
 @pytest.mark.ros
+def test_only_subscribed_outputs_are_built(ros_node, monkeypatch):
+    """Only points2 subscribed (the live graph): no depth or disparity message is built."""
+    import stereo_depth.stereo_depth_node as sdn
+    built = {'image': 0, 'disparity': 0}
+    real_image, real_disparity = sdn.numpy_to_image, sdn.StereoDepthNode._disparity_message
+
+    def count_image(*a, **k):
+        built['image'] += 1
+        return real_image(*a, **k)
+
+    def count_disparity(*a, **k):
+        built['disparity'] += 1
+        return real_disparity(*a, **k)
+
+    monkeypatch.setattr(sdn, 'numpy_to_image', count_image)
+    monkeypatch.setattr(sdn.StereoDepthNode, '_disparity_message', staticmethod(count_disparity))
+    node = StereoDepthNode(context=ros_node.context, parameter_overrides=[
+        Parameter('max_disparity', value=16), Parameter('point_decimation', value=2)])
+    clouds = []
+    ros_node.create_subscription(PointCloud2, 'points2', clouds.append, 10)
+    executor = SingleThreadedExecutor(context=ros_node.context)
+    executor.add_node(node)
+    executor.add_node(ros_node)
+    try:
+        pubs = {name: ros_node.create_publisher(t, name, qos_profile_sensor_data)
+                for name, t in (('left/image_rect', Image), ('right/image_rect', Image),
+                                ('left/camera_info', CameraInfo),
+                                ('right/camera_info', CameraInfo))}
+        left, right = textured_pair()
+        deadline = time.monotonic() + 10.0
+        k = 0
+        while len(clouds) < 2 and time.monotonic() < deadline:
+            k += 1
+            li, ri = infos(96, 60, k)
+            hdr = Header(stamp=ns_to_stamp(k), frame_id='left_optical')
+            pubs['left/camera_info'].publish(li)
+            pubs['right/camera_info'].publish(ri)
+            pubs['left/image_rect'].publish(numpy_to_image(left, 'mono8', hdr))
+            pubs['right/image_rect'].publish(numpy_to_image(right, 'mono8', hdr))
+            for _ in range(5):
+                executor.spin_once(timeout_sec=0.02)
+        assert len(clouds) >= 2, node.counters
+        assert built == {'image': 0, 'disparity': 0}
+        xyz = pointcloud2_to_array(clouds[-1])
+        assert len(xyz) > 0.8 * 30 * 48                    # every 2nd pixel, most of them valid
+        np.testing.assert_allclose(np.median(xyz[:, 2]), FX * BASELINE / SHIFT, rtol=0.02)
+    finally:
+        executor.remove_node(node)
+        executor.remove_node(ros_node)
+        executor.shutdown()
+        node.destroy_node()
+
+
+@pytest.mark.ros
 def test_bad_input_is_rejected_counted_and_the_node_keeps_going(harness):
     h = harness(max_disparity=16)
     left, right = textured_pair()

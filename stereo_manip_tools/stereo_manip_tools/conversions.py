@@ -10,6 +10,7 @@ Every function validates its input and raises ``ValueError`` naming what is wron
 
 from __future__ import annotations
 
+import array
 from dataclasses import dataclass
 import sys
 from typing import Any, Iterable, Optional, Sequence, Tuple
@@ -37,6 +38,7 @@ __all__ = [
     'read_pointcloud2',
     'pointcloud2_to_array',
     'xyz_to_pointcloud2',
+    'float32_fields_to_pointcloud2',
     'pose_to_matrix',
     'matrix_to_pose',
     'transform_to_matrix',
@@ -422,6 +424,45 @@ def xyz_to_pointcloud2(points: np.ndarray, header: Optional[Header] = None, *,
     msg.row_step = msg.point_step * n
     msg.is_dense = bool(np.all(np.isfinite(P)))
     msg.data = structured.tobytes()
+    return msg
+
+
+def float32_fields_to_pointcloud2(buffer: np.ndarray, fields: Sequence[str],
+                                  header: Optional[Header] = None, *,
+                                  is_dense: Optional[bool] = None) -> PointCloud2:
+    """
+    Wrap an array that already has the PointCloud2 layout: its bytes are copied once.
+
+    :param buffer: (height, width, k) or (N, k) float32, C-contiguous: k float32 fields per
+        point (a packed ``rgb`` keeps its uint32 bits in the float32). (N, k) gives an
+        unorganised cloud (height 1); (height, width, k) an organised one.
+    :param fields: the k field names, at offsets 0, 4, ..., 4 (k - 1).
+    :param is_dense: no NaN point; None: computed from the first three fields.
+    :raises ValueError: not float32, not contiguous, or k != len(fields).
+    """
+    b = np.asarray(buffer)
+    if b.dtype != np.float32 or b.ndim not in (2, 3) or not b.flags.c_contiguous:
+        raise ValueError(f'buffer must be a C-contiguous float32 (N, k) or (H, W, k) array, '
+                         f'got {b.dtype} {b.shape}')
+    k = b.shape[-1]
+    if k != len(fields):
+        raise ValueError(f'buffer has {k} fields per point, {len(fields)} names given')
+    height, width = (1, b.shape[0]) if b.ndim == 2 else (b.shape[0], b.shape[1])
+    msg = PointCloud2()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = int(height), int(width)
+    msg.fields = [PointField(name=name, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+                  for i, name in enumerate(fields)]
+    msg.is_bigendian = sys.byteorder == 'big'
+    msg.point_step = 4 * k
+    msg.row_step = msg.point_step * msg.width
+    if is_dense is None:
+        is_dense = bool(np.isfinite(b.reshape(-1, k)[:, :3]).all())
+    msg.is_dense = bool(is_dense)
+    data = array.array('B')
+    data.frombytes(b.reshape(-1).view(np.uint8))     # one copy, no per-byte Python work
+    msg.data = data
     return msg
 
 

@@ -1,0 +1,375 @@
+#!/usr/bin/env python3
+"""
+CPU per frame of ``stereo_depth_node`` at 640x480 in the live configuration, split by stage.
+
+1. The node as its own process, with the parameters of the free-running peg_in_hole graph
+   (``stereo_manip_bringup.demo``: band 48-159 px = 112 disparities, ``point_decimation`` 2,
+   reliable input, ``LIVE_PARAMETERS``: one numba thread), fed pre-rendered ``peg_in_hole``
+   pairs (mono8 + CameraInfo) in lock-step: the next pair is published when the cloud of the
+   previous one has arrived, so no pair is dropped and every frame is measured. Only
+   ``points2`` is subscribed, as in the graph. CPU per frame = the node process's CPU time
+   (sum of ``/proc/<pid>/task/*/schedstat`` run times, ns resolution) from one publication to
+   the next: everything the process does for a frame (DDS receive, decoding, matching, cloud,
+   serialisation, executor), robust to the load of other processes.
+2. In this process, one numba thread (``NUMBA_NUM_THREADS=1`` is set before numba loads), the
+   node's per-frame work split by stage with ``time.process_time``: decoding, census transforms,
+   fused cost + aggregation + WTA, left-right check, speckle filter, median, fill, depth, cloud
+   points, PointCloud2 packing; and the cloud path that main used
+   (``pipeline.cloud_points`` + ``conversions.xyz_to_pointcloud2``) measured on the same frames
+   as the peer of the packed cloud (``pipeline.cloud_message_data``).
+
+3. Main's per-frame path against this branch's, alternated frame by frame in this process
+   (``paired_main_vs_branch``): the change measured under one and the same load.
+
+Goals: node process CPU per frame median <= 50 ms (half a core at 10 Hz: the localiser and
+the contact node need the rest of the two cores); cloud build + pack p95 <= 10 ms.
+
+Run: ``python bench/stereo_node_cpu.py [--frames N]``; writes
+``bench/results/stereo_node_cpu.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+import random  # noqa: I100
+import time
+from typing import Any, Callable, Dict, List
+
+os.environ.setdefault('NUMBA_NUM_THREADS', '1')
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(1, 100)))
+
+import numpy as np  # noqa: E402
+
+from stereo_manip_tools.bench_report import goal, write_report  # noqa: E402
+
+SCENE = 'peg_in_hole'
+
+
+def stats(values: List[float]) -> Dict[str, float]:
+    """Return median, p95, max and n of ``values``."""
+    a = np.asarray(values, float)
+    return {'median': float(np.median(a)), 'p95': float(np.percentile(a, 95)),
+            'max': float(a.max()), 'n': int(a.size)}
+
+
+def node_parameters() -> Dict[str, Any]:
+    """Return the stereo node's parameters in the free-running peg_in_hole graph."""
+    from stereo_manip_bringup.demo import LIVE_PARAMETERS, STAGES
+    for spec in STAGES[SCENE]().nodes:
+        if spec.executable == 'stereo_depth_node':
+            return {**spec.parameters, **LIVE_PARAMETERS.get('stereo_depth_node', {})}
+    raise RuntimeError(f'no stereo node in the {SCENE} graph')
+
+
+def render_frames(n: int):
+    """``n`` pairs of the scene (every 3rd frame, as the 10 Hz camera), with camera infos."""
+    from std_msgs.msg import Header
+
+    from stereo_depth.synthetic import render
+    from stereo_depth.synthetic.camera import StereoCamera
+    from stereo_manip_tools.conversions import camera_info_from_parameters, numpy_to_image, \
+        StereoCameraParameters
+
+    c = StereoCamera.create()
+    params = StereoCameraParameters(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy, baseline=c.baseline,
+                                    width=c.width, height=c.height)
+    frames = []
+    for k in range(n):
+        left, right, _ = render(SCENE, 3 * k)
+        h = Header(frame_id='camera_optical_frame')
+        frames.append((numpy_to_image(left, 'mono8', h), numpy_to_image(right, 'mono8', h)))
+    infos = camera_info_from_parameters(params, Header(frame_id='camera_optical_frame'))
+    return frames, infos
+
+
+def task_cpu_ns(pid: int) -> int:
+    """Run time [ns] of all threads of ``pid`` (``/proc/<pid>/task/*/schedstat``)."""
+    total = 0
+    for task in Path(f'/proc/{pid}/task').iterdir():
+        try:
+            total += int((task / 'schedstat').read_text().split()[0])
+        except (OSError, IndexError, ValueError):
+            pass
+    return total
+
+
+def task_cpu_by_thread(pid: int) -> Dict[str, int]:
+    """Run time [ns] of each thread of ``pid``, keyed ``'<name>/<tid>'``."""
+    out = {}
+    for task in Path(f'/proc/{pid}/task').iterdir():
+        try:
+            name = (task / 'comm').read_text().strip()
+            out[f'{name}/{task.name}'] = int((task / 'schedstat').read_text().split()[0])
+        except (OSError, IndexError, ValueError):
+            pass
+    return out
+
+
+def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3) -> Dict[str, Any]:
+    """CPU per frame of the node process in lock-step (part 1 of the module docstring)."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+    from stereo_manip_tools.conversions import ns_to_stamp, stamp_to_ns
+    from stereo_manip_tools.processes import ExecutableProcess, make_node, shutdown_node, \
+        spin_until
+
+    ros_args = []
+    for k, v in params.items():
+        ros_args += ['-p', f'{k}:={str(v).lower() if isinstance(v, bool) else v}']
+    node = make_node(f'bench_stereo_cpu_{os.getpid()}')
+    qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+    pubs = {n: node.create_publisher(t, n, qos) for n, t in (
+        ('left/image_rect', Image), ('right/image_rect', Image),
+        ('left/camera_info', CameraInfo), ('right/camera_info', CameraInfo))}
+    got: Dict[int, int] = {}
+    node.create_subscription(PointCloud2, 'points2',
+                             lambda m: got.__setitem__(stamp_to_ns(m.header.stamp), m.width),
+                             QoSProfile(depth=1))
+    proc = ExecutableProcess('stereo_depth', 'stereo_depth_node', ros_args=ros_args,
+                             env={'NUMBA_NUM_THREADS': '1'})
+    try:
+        if not proc.wait_for_output('warm-up', timeout=120.0):
+            raise RuntimeError('stereo node did not start:\n' + proc.output()[-2000:])
+        spin_until(node, lambda: pubs['left/image_rect'].get_subscription_count() > 0
+                   and node.count_subscribers('points2') > 0, 20.0)
+        pid = proc.process.pid
+        cpu_ms: List[float] = []
+        latency_ms: List[float] = []
+        points: List[int] = []
+        lost = 0
+        t_start = time.monotonic()
+        c_start = None
+        for i, (lm, rm) in enumerate([frames[0]] * warmup + list(frames)):
+            stamp_ns = time.time_ns()
+            stamp = ns_to_stamp(stamp_ns)
+            for m in (lm, rm, *infos):
+                m.header.stamp = stamp
+            c0 = task_cpu_ns(pid)
+            if i == warmup:
+                c_start, t_start = c0, time.monotonic()
+                threads_start = task_cpu_by_thread(pid)
+            pubs['left/camera_info'].publish(infos[0])
+            pubs['right/camera_info'].publish(infos[1])
+            pubs['left/image_rect'].publish(lm)
+            pubs['right/image_rect'].publish(rm)
+            ok = spin_until(node, lambda: stamp_ns in got, 5.0)
+            t_recv = time.time_ns()
+            spin_until(node, lambda: False, 0.02)      # let the node settle (idle spin)
+            if i < warmup:
+                continue
+            cpu_ms.append((task_cpu_ns(pid) - c0) / 1e6)
+            if ok:
+                latency_ms.append((t_recv - stamp_ns) / 1e6)
+                points.append(got[stamp_ns])
+            else:
+                lost += 1
+        c_end = task_cpu_ns(pid)
+        threads_end = task_cpu_by_thread(pid)
+        window = time.monotonic() - t_start
+        log = proc.output()
+    finally:
+        proc.stop()
+        shutdown_node(node)
+    n = len(frames)
+    by_name: Dict[str, float] = {}
+    for key, ns in threads_end.items():
+        name = key.rsplit('/', 1)[0]
+        by_name[name] = by_name.get(name, 0.0) + (ns - threads_start.get(key, 0)) / 1e6 / n
+    by_tid = {key: (ns - threads_start.get(key, 0)) / 1e6 / n for key, ns in threads_end.items()}
+    return {'cpu_ms_per_frame_by_thread_name': {k: v for k, v in sorted(
+                by_name.items(), key=lambda kv: -kv[1]) if v > 0.01},
+            'cpu_ms_per_frame_by_thread': {k: v for k, v in sorted(
+                by_tid.items(), key=lambda kv: -kv[1]) if v > 0.01},
+            'parameters': params, 'frames': n, 'clouds_lost': lost,
+            'cpu_ms_per_frame': stats(cpu_ms),
+            'cpu_ms_per_frame_mean_over_window': (c_end - c_start) / 1e6 / n,
+            'window_s': window,
+            'cloud_latency_ms_lockstep': stats(latency_ms) if latency_ms else None,
+            'points_per_cloud': stats(points) if points else None,
+            'node_log_tail': log[-1500:]}
+
+
+def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
+    """Per-stage CPU per frame in this process (part 2 of the module docstring)."""
+    import numba
+
+    from stereo_depth import optimization as op, pipeline as pl, refinement as rf
+    from stereo_depth.stereo_depth_node import prepare_pair, stereo_geometry
+    from stereo_manip_tools.conversions import xyz_to_pointcloud2
+
+    numba.set_num_threads(1)
+    dmin, nd = int(params['min_disparity']), int(params['max_disparity'])
+    dec = int(params['point_decimation'])
+    defaults = pl.method_defaults('block_matching')
+    cw, win = tuple(defaults['census_window']), tuple(defaults['window'])
+    nbits = np.uint8(cw[0] * cw[1] - 1)
+    times: Dict[str, List[float]] = {}
+
+    def timed(name: str, f: Callable, *a, **k):
+        c0 = time.process_time()
+        out = f(*a, **k)
+        times.setdefault(name, []).append(1e3 * (time.process_time() - c0))
+        return out
+
+    same_xyz = True
+    for rep, (lm, rm) in enumerate([frames[0], frames[1]] + list(frames)):
+        if rep == 2:
+            times.clear()
+        limg, rimg, colours = timed('decode images', prepare_pair, lm, rm)
+        h, w = limg.shape
+        geo = stereo_geometry(infos[0], infos[1], w, h)
+        lc = np.ascontiguousarray(limg[:, dmin:])
+        rc = np.ascontiguousarray(rimg[:, :w - dmin])
+        cl = timed('census transforms', op.census_codes, lc, cw)
+        cr = op.census_codes(rc, cw)
+        times['census transforms'][-1] *= 2.0      # both views cost alike; timed once
+        dl, dr = timed('cost + aggregation + WTA (fused)', op._census_box_wta, cl, cr, nd,
+                       win[0] // 2, win[1] // 2, nbits, 1, 0.0)
+        d = timed('left-right check', rf.left_right_check, dl, dr, defaults['lr_max_diff'])
+        d = timed('speckle filter', rf.remove_speckles, d, defaults['speckle_size'],
+                  defaults['speckle_diff'])
+        d = timed('median filter', rf.median_filter, d, defaults['median'])
+        d = timed('fill', rf.fill_invalid, d, 'row')
+        disp = timed('compute_disparity (all of the above but decoding)', pl.compute_disparity,
+                     limg, rimg, 'block_matching', nd, min_disparity=dmin)
+        depth = timed('depth', pl.disparity_to_depth, disp, geo['fx'], geo['baseline'],
+                      geo['doffs'])
+        data = timed('cloud build + pack (packed, this branch)', pl.cloud_message_data, depth,
+                     geo['fx'], geo['fy'], geo['cx'], geo['cy'], dec, False, colours)
+        pts, rgb = timed('peer: cloud_points (main)', pl.cloud_points, depth, geo['fx'],
+                         geo['fy'], geo['cx'], geo['cy'], dec, False, colours)
+        msg = timed('peer: xyz_to_pointcloud2 (main)', xyz_to_pointcloud2, pts, lm.header)
+        same_xyz &= bytes(msg.data) == data.buffer.tobytes()
+    peer = [a + b for a, b in zip(times['peer: cloud_points (main)'],
+                                  times['peer: xyz_to_pointcloud2 (main)'])]
+    out = {k: stats(v) for k, v in times.items()}
+    out['peer: cloud build + pack (main)'] = stats(peer)
+    return {'cpu_ms': out, 'packed_bytes_identical_to_main': bool(same_xyz),
+            'numba_threads': int(numba.get_num_threads())}
+
+
+def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
+                          rounds: int = 2) -> Dict[str, Any]:
+    """
+    CPU per frame of main's per-frame path and of this branch's, alternated frame by frame.
+
+    The shared machine's load moves CPU times by +-15 ms between runs a minute apart (the
+    node-process figures of part 1 cannot separate a 10 ms change); alternating the two paths
+    on every frame gives both the same load, and the per-frame difference is the change.
+    main's path: 64-bit census codes into the fused kernel, ``nan_to_num`` before the median,
+    ``cloud_points`` + ``xyz_to_pointcloud2``. This branch's: ``compute_disparity`` (32-bit
+    codes, ``np.where``) + ``cloud_message_data`` + ``float32_fields_to_pointcloud2``. Both
+    include decoding, depth and the message; results are checked equal on every frame.
+    """
+    import cv2
+    import numba
+
+    from stereo_depth import matching_cost as mc, optimization as op, pipeline as pl, \
+        refinement as rf
+    from stereo_depth.stereo_depth_node import prepare_pair, stereo_geometry
+    from stereo_manip_tools.conversions import float32_fields_to_pointcloud2, \
+        xyz_to_pointcloud2
+
+    numba.set_num_threads(1)
+    dmin, nd = int(params['min_disparity']), int(params['max_disparity'])
+    dec = int(params['point_decimation'])
+    p = pl.method_defaults('block_matching')
+    cw, win = tuple(p['census_window']), tuple(p['window'])
+    nbits = np.uint8(cw[0] * cw[1] - 1)
+
+    def main_path(lm, rm):
+        limg, rimg, colours = prepare_pair(lm, rm)
+        h, w = limg.shape
+        geo = stereo_geometry(infos[0], infos[1], w, h)
+        lc = np.ascontiguousarray(limg[:, dmin:])
+        rc = np.ascontiguousarray(rimg[:, :w - dmin])
+        dl, dr = op._census_box_wta(mc.census_transform(lc, cw), mc.census_transform(rc, cw),
+                                    nd, win[0] // 2, win[1] // 2, nbits, 1, 0.0)
+        d = rf.left_right_check(dl, dr, p['lr_max_diff'])
+        d = rf.remove_speckles(d, p['speckle_size'], p['speckle_diff'])
+        full = cv2.medianBlur(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0), p['median'])
+        d = rf._nan_median(d, p['median'] // 2, full, True)
+        d = rf.fill_invalid(d, 'row')
+        d[(d < 0.5) | (d > nd - 1.5)] = np.nan
+        disp = np.full((h, w), np.nan, np.float32)
+        disp[:, dmin:] = d + np.float32(dmin)
+        depth = pl.disparity_to_depth(disp, geo['fx'], geo['baseline'], geo['doffs'])
+        pts, rgb = pl.cloud_points(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'], dec,
+                                   False, colours)
+        return xyz_to_pointcloud2(pts, lm.header)
+
+    def branch_path(lm, rm):
+        limg, rimg, colours = prepare_pair(lm, rm)
+        h, w = limg.shape
+        geo = stereo_geometry(infos[0], infos[1], w, h)
+        disp = pl.compute_disparity(limg, rimg, 'block_matching', nd, min_disparity=dmin)
+        depth = pl.disparity_to_depth(disp, geo['fx'], geo['baseline'], geo['doffs'])
+        packed = pl.cloud_message_data(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'], dec,
+                                       False, colours)
+        return float32_fields_to_pointcloud2(packed.buffer, packed.fields, lm.header,
+                                             is_dense=packed.is_dense)
+
+    main_path(*frames[0])
+    branch_path(*frames[0])
+    t = {'main': [], 'branch': []}
+    same = True
+    for r in range(rounds):
+        for i, (lm, rm) in enumerate(frames):
+            out = {}
+            order = (('main', main_path), ('branch', branch_path))
+            for name, f in (order if (i + r) % 2 == 0 else order[::-1]):
+                c0 = time.process_time()
+                out[name] = f(lm, rm)
+                t[name].append(1e3 * (time.process_time() - c0))
+            same &= bytes(out['main'].data) == bytes(out['branch'].data)
+    diff = [a - b for a, b in zip(t['main'], t['branch'])]
+    return {'cpu_ms_per_frame': {'main': stats(t['main']), 'branch': stats(t['branch']),
+                                 'main_minus_branch': stats(diff)},
+            'clouds_identical': bool(same), 'frames': len(frames), 'rounds': rounds}
+
+
+def main() -> None:
+    """Run the three parts and write the report."""
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
+    ap.add_argument('--frames', type=int, default=60, help='pairs measured')
+    ap.add_argument('--note', default='', help='recorded in the JSON')
+    args = ap.parse_args()
+    params = node_parameters()
+    frames, infos = render_frames(args.frames)
+    load_start = list(os.getloadavg())
+    node = node_process(frames, infos, params)
+    split = stage_split(frames, infos, params)
+    paired = paired_main_vs_branch(frames, infos, params)
+    load_end = list(os.getloadavg())
+    for k, v in split['cpu_ms'].items():
+        print(f"{k:52s} {v['median']:7.2f} {v['p95']:7.2f} {v['max']:7.2f} ms CPU")
+    c = node['cpu_ms_per_frame']
+    for k, v in paired['cpu_ms_per_frame'].items():
+        print(f"paired, {k:30s} {v['median']:7.2f} {v['p95']:7.2f} {v['max']:7.2f} ms CPU")
+    print('node threads [ms CPU per frame]:', {k: round(v, 2) for k, v in
+                                               node['cpu_ms_per_frame_by_thread'].items()})
+    print(f"node process: {c['median']:.1f} / {c['p95']:.1f} / {c['max']:.1f} ms CPU per frame "
+          f"(median / p95 / max), {node['clouds_lost']} clouds lost; load {load_end}")
+    packed = split['cpu_ms']['cloud build + pack (packed, this branch)']
+    goals = [
+        goal('stereo_depth_node process CPU per frame median [ms] (live peg_in_hole config)',
+             50.0, '<=', c['median']),
+        goal('cloud build + pack CPU per frame p95 [ms]', 10.0, '<=', packed['p95']),
+        goal('clouds lost in lock-step', 0, '==', node['clouds_lost']),
+        goal('per-frame CPU main - branch, median of paired frames [ms] (> 0: cheaper)', 0.0,
+             '>', paired['cpu_ms_per_frame']['main_minus_branch']['median']),
+        goal('clouds of main and branch identical on every paired frame', 1, '==',
+             int(paired['clouds_identical'])),
+    ]
+    write_report('stereo_node_cpu', goals, scene=SCENE, image_size=[640, 480],
+                 node_process=node, in_process_stage_split=split,
+                 paired_main_vs_branch=paired,
+                 load_average={'start': load_start, 'end': load_end}, note=args.note)
+
+
+if __name__ == '__main__':
+    main()
