@@ -54,6 +54,10 @@ class CorrectionResult:
     :ivar relation_source: where the relation came from: 'given', 'detected' (one tolerance)
         or 'recognised' (model selection + temporal model, :mod:`.recognition`), with
         ', fallback k' when the k-th alternative relation had to be used.
+    :ivar guarded: True when the correction-size guard refused a correction far beyond the
+        stated pose noise (:attr:`~contact_correction.recognition.RecognitionOptions.\
+max_correction_sigma`) and a relation with fewer constraints, the non-penetration only
+        correction or the observation was used instead (the status says which).
     """
 
     T_moving: np.ndarray
@@ -71,6 +75,7 @@ class CorrectionResult:
     rotation_change: np.ndarray = field(default_factory=lambda: np.zeros(3))
     elapsed: float = 0.0
     relation_source: str = ''
+    guarded: bool = False
 
     @property
     def rotation_rank(self) -> int:
