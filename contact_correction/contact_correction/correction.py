@@ -112,8 +112,8 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                  max_rotation: float = 0.35, residual_tolerance: float = RESIDUAL_TOLERANCE,
                  check_penetration: bool = True, penetration_spacing: float = 0.005,
                  element_margin: float = 1e-6,
-                 rank1_method: str = 'auto', prune_off_element: bool = False
-                 ) -> CorrectionResult:
+                 rank1_method: str = 'auto', prune_off_element: bool = False,
+                 penetration_before: Optional[float] = None) -> CorrectionResult:
     """
     Correct the observed pose of the moving object with the contact relation.
 
@@ -141,6 +141,8 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         elements when the rest of the relation has the same constraint rank (e.g. a vertex of
         a face-face contact beyond the overlap: its plane is the face's plane), instead of
         refusing the correction.
+    :param penetration_before: the observation's penetration depth [m] when the caller has
+        measured it already (same ``penetration_spacing``); None: measured here.
     """
     t0 = time.perf_counter()
     raw = np.array(T_moving, dtype=float, copy=True) if np.size(T_moving) == 16 \
@@ -168,8 +170,12 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         pairs = detect_contact_relation(moving, fixed, Tm, Tf, tolerance,
                                         penetration_tolerance, angle_tolerance)
     pairs = list(pairs)
-    pen_before = (penetration_depth(moving, fixed, Tm, Tf, penetration_spacing)
-                  if check_penetration else float('nan'))
+    if not check_penetration:
+        pen_before = float('nan')
+    elif penetration_before is not None:
+        pen_before = float(penetration_before)
+    else:
+        pen_before = penetration_depth(moving, fixed, Tm, Tf, penetration_spacing)
     if not pairs:
         return passthrough('no contact: no element pair within tolerance '
                            f'{tolerance:.3g} m; pose passed through',

@@ -89,7 +89,9 @@ class RecognitionOptions:
         switch cost) may keep a relation over frames that fit it a little worse, never one
         that the frame rejects at 3 sigma (e.g. a peg entering a hole kept on the top face by
         hysteresis: its correction moved the peg 4-5 mm back up along the free direction).
-        0 disables it.
+        Online only (:meth:`RelationTracker.update`: the node, ``--online``): offline the
+        Viterbi back-tracking sees the frames that follow and keeps a contact through an
+        outlier frame. 0 disables it.
     :ivar max_correction_sigma: the correction-size guard ``k``: a correction whose
         translation of the moving origin exceeds ``k sigma_translation`` or whose rotation
         exceeds ``k sigma_rotation`` is far beyond the stated pose noise and is not applied
@@ -234,8 +236,10 @@ def chi2_survival(x: float, dof: int) -> float:
 
 def chi2_threshold(chi2_one_dof: float, dof: int) -> float:
     """
-    Chi-square quantile with ``dof`` degrees of freedom at the tail probability of
-    ``chi2_one_dof`` with one degree of freedom (e.g. 9 -> p 0.0027 -> 11.8 for 2 dof).
+    Return the chi-square quantile for ``dof`` at the tail probability of ``chi2_one_dof``.
+
+    The tail probability is that of ``chi2_one_dof`` with one degree of freedom (e.g. 9 ->
+    p 0.0027 -> 11.8 for 2 dof, 14.2 for 3).
     """
     p = chi2_survival(chi2_one_dof, 1)
     lo, hi = 0.0, max(chi2_one_dof, 1.0) * (dof + 2.0) + 50.0
@@ -608,9 +612,6 @@ class RelationTracker:
         base = ordered[0][1][0]
         self._cost = {s: c - base for s, (c, _) in ordered}
         if keep_history:
-            if rec.options.evidence_chi2 > 0:    # score the nested relations of the beam now
-                for st, _ in ordered:            # (backtrack's evidence check needs them)
-                    rec.nested(fc.hypotheses[st])
             self.history.append((fc, {s: (c - base, p) for s, (c, p) in ordered}))
         best_state = ordered[0][0]
         h = fc.hypotheses[best_state]
@@ -631,17 +632,6 @@ class RelationTracker:
         if h.state in fc.hypotheses:
             h = rec.evidence_check(h)
         return h, fc
-
-    def _evidence(self, fc: FrameCandidates, h: Hypothesis) -> Hypothesis:
-        """The evidence check of :meth:`RelationRecognizer.evidence_check` on a past frame."""
-        rec = self.recognizer
-        if rec.options.evidence_chi2 <= 0 or not h.state or not np.isfinite(h.chi2):
-            return h
-        for c in sorted(fc.hypotheses.values(), key=lambda c: c.score):
-            if c.state < h.state and 0 <= c.rank < h.rank \
-                    and h.chi2 - c.chi2 > rec.evidence_limit(h.rank - c.rank):
-                return c
-        return h
 
     def backtrack(self) -> List[Hypothesis]:
         """
@@ -680,8 +670,6 @@ class RelationTracker:
                         and fc.hypotheses[s].chi2 < h.chi2 - AMBIGUITY_FIT]
                 if near:
                     h = fc.hypothesis(common_state([state] + near))
-            if h.state in fc.hypotheses:
-                h = self._evidence(fc, h)
             out.append(h)
             state = table[state][1]
             if state is None:

@@ -75,6 +75,8 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
     spacing = kwargs.get('penetration_spacing', 0.005)
     pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check \
         else float('nan')
+    if check:
+        kwargs['penetration_before'] = pen      # every attempt starts from the observation
     tol = max(kwargs.get('residual_tolerance', 1e-9), 1e-6)
     margin_exit = 1e-4     # [m] faces this close to the nearest exit of a vertex count as exits
 
