@@ -14,7 +14,10 @@ When the correction with the chosen relation is refused (not satisfiable, degene
 points off their elements, penetration left, correction over the limits) the next best
 relations of the frame are tried (fewer or other constraints), and a penetrating observation
 with no usable relation is pushed out by the non-linear step on its penetrating pairs, so that
-penetration is not passed through.
+penetration is not passed through. A correction far beyond the stated pose noise (the
+correction-size guard, ``RecognitionOptions.max_correction_sigma``) is not applied blindly:
+the relations nested in the chosen one, then the non-penetration only correction, are tried
+and the result is flagged (``CorrectionResult.guarded``).
 """
 
 from __future__ import annotations
