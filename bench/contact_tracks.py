@@ -171,7 +171,10 @@ def run(quick: bool, dump: str = '') -> None:
                              'relation_ok': equivalent(m, f, T_true, truths[k], r.pairs),
                              'penetration': penetration_depth(m, f, r.T_moving, Tf, 0.002),
                              'add': add_error(m, T_out, T_true),
-                             'source': r.relation_source, 'status': r.status[:120]}
+                             'source': r.relation_source, 'status': r.status[:120],
+                             'guarded': bool(r.guarded),
+                             'correction_t': float(np.linalg.norm(r.translation_change)),
+                             'correction_r': float(np.linalg.norm(r.rotation_change))}
                         if truths[k]:
                             g = evaluate_contacts(m, f, T_out, truths[k])
                             e['con_err'] = float(np.sqrt(np.mean(g.distances ** 2)))
@@ -219,6 +222,13 @@ def summarise(rows: List[dict], quick: bool) -> None:
         s['add_after_m'] = pct([r[meth]['add'] for r in rows])
         s['corrected_fraction_in_contact'] = float(np.mean([r[meth]['corrected']
                                                             for r in contact]))
+        # the correction-size guard (max_correction_sigma): frames where a correction far
+        # beyond the stated noise was refused (a nested relation, push-out or pass-through)
+        s['guarded_frames'] = int(sum(r[meth]['guarded'] for r in rows))
+        s['correction_translation_over_sigma_t'] = pct(
+            [r[meth]['correction_t'] / r['sigma_t'] for r in rows if r[meth]['corrected']])
+        s['correction_rotation_over_sigma_r'] = pct(
+            [r[meth]['correction_r'] / r['sigma_r'] for r in rows if r[meth]['corrected']])
         by_phase = {}
         for key in sorted({(r['track'], r['phase']) for r in rows}):
             sel = [r for r in rows if (r['track'], r['phase']) == key]
@@ -276,6 +286,13 @@ def summarise(rows: List[dict], quick: bool) -> None:
         print(f"{'MET  ' if g['met'] else 'UNMET'} {g['metric']}: {g['value']:.4g} "
               f"{g['comparison']} {g['target']}")
     p = summary['peer_per_frame_detection']
+    for meth in ('recognised_offline', 'recognised_online'):
+        s = summary[meth]
+        print(f"{meth}: guarded frames {s['guarded_frames']}, free change "
+              f"median/p95/max {s['free_translation_change_m'].get('median', 0):.3g}/"
+              f"{s['free_translation_change_m'].get('p95', 0):.3g}/"
+              f"{s['free_translation_change_m'].get('max', 0):.3g} m, worse than observed max "
+              f"{s['worse_than_observed_max_m']:.3g} m")
     print(f"peer: relation {p['relation_correct_fraction_in_contact']:.3f}, penetration max "
           f"{p['penetration_after_m']['max']:.3g}, free change max "
           f"{p['free_translation_change_m'].get('max', 0):.3g}, reduction "
@@ -283,9 +300,10 @@ def summarise(rows: List[dict], quick: bool) -> None:
     write_report('contact_tracks', goals, summary=summary, quick=quick,
                  loadavg=list(os.getloadavg()),
                  notes='Timing: thread CPU time per frame of ContactCorrector.update (the node '
-                       'path: recognition, temporal model, correction, penetration checks); '
-                       'run under the exclusive CPU lock. Accuracy goals on both the offline '
-                       'command (Viterbi) and the online node path.')
+                       'path: recognition, temporal model, evidence rule, correction with the '
+                       'correction-size guard, penetration checks); contended machine, see '
+                       'loadavg. Accuracy goals on both the offline command (Viterbi) and the '
+                       'online node path. Defaults: evidence_chi2 9, max_correction_sigma 4.')
 
 
 def main() -> None:

@@ -61,7 +61,8 @@ __all__ = ['ContactCorrectionNode', 'main', 'model_path_problem']
 
 _RECOGNITION_PARAMETERS = ('recognition', 'sigma_translation', 'sigma_rotation',
                            'search_margin', 'free_dof_penalty', 'switch_cost',
-                           'ambiguity_margin', 'optimal',
+                           'ambiguity_margin', 'evidence_chi2', 'max_correction_sigma',
+                           'optimal',
                            'tolerance', 'penetration_tolerance', 'angle_tolerance',
                            'max_translation', 'max_rotation', 'check_penetration',
                            'element_margin')
@@ -159,6 +160,14 @@ class ContactCorrectionNode(Node):
             'at a contact change the evidence does not pin down, enforce only the contacts '
             'common to both relations when the other is within this score margin (online: '
             'forward costs; correct_trajectory service: min-marginals); 0: off', 0.0, 1000.0))
+        self.declare_parameter('evidence_chi2', 9.0, _float(
+            "drop constraints of the temporal model's relation that the frame rejects: a "
+            'nested relation fitting better by more than this chi2 (1 constraint; same tail '
+            'probability for more) is used; 0: off', 0.0, 1000.0))
+        self.declare_parameter('max_correction_sigma', 4.0, _float(
+            'correction-size guard k: a correction over k sigma_translation or k '
+            'sigma_rotation is refused; relations with fewer constraints, then only the '
+            'penetration removed, are tried; counted as guarded; 0: off', 0.0, 1000.0))
         self.declare_parameter('element_margin', 1e-6, _float(
             'largest distance [m] of a corrected contact point outside its element (given / '
             'detected relations; recognised ones use the search margin)', 0.0, 0.05))
@@ -191,7 +200,7 @@ class ContactCorrectionNode(Node):
                 self.model_error = self.model_error or str(exc)
                 self.get_logger().error(f'{exc}; every pose will be passed through')
         self.counts: Dict[str, int] = {'received': 0, 'rejected': 0, 'no_fixed_pose': 0,
-                                       'corrected': 0, 'passed_through': 0}
+                                       'corrected': 0, 'passed_through': 0, 'guarded': 0}
         self.track: deque = deque(maxlen=int(g('track_length').value))
         self.corrector: ContactCorrector | None = None
         self._units_warned = False
@@ -274,7 +283,9 @@ class ContactCorrectionNode(Node):
             search_margin=margin if margin > 0 else None,
             free_dof_penalty=g('free_dof_penalty').value,
             switch_cost=g('switch_cost').value,
-            ambiguity_margin=g('ambiguity_margin').value)
+            ambiguity_margin=g('ambiguity_margin').value,
+            evidence_chi2=g('evidence_chi2').value,
+            max_correction_sigma=g('max_correction_sigma').value)
 
     def _relation(self):
         text = str(self.get_parameter('relation').value).strip()
@@ -319,7 +330,8 @@ class ContactCorrectionNode(Node):
     def _summary(self) -> str:
         c = self.counts
         return (f'input: {c["received"]} received, {c["corrected"]} corrected, '
-                f'{c["passed_through"]} passed through, {c["rejected"]} rejected, '
+                f'{c["passed_through"]} passed through, {c["guarded"]} guarded, '
+                f'{c["rejected"]} rejected, '
                 f'{c["no_fixed_pose"]} without fixed pose')
 
     def _on_moving(self, msg: PoseStamped) -> None:
@@ -342,6 +354,11 @@ class ContactCorrectionNode(Node):
                     'x its size): poses in millimetres? (REP 103: metres; warned once)')
         result = self._correct(T, self.fixed_T, stamp)
         self.counts['corrected' if result.corrected else 'passed_through'] += 1
+        if result.guarded:
+            self.counts['guarded'] += 1
+            self.get_logger().warning(
+                f'correction guarded ({self.counts["guarded"]} so far): {result.status}',
+                throttle_duration_sec=1.0)
         if not result.corrected:
             self.get_logger().debug(f'pose passed through: {result.status}')
         self.pose_pub.publish(PoseStamped(header=header, pose=matrix_to_pose(result.T_moving)))

@@ -54,6 +54,10 @@ class CorrectionResult:
     :ivar relation_source: where the relation came from: 'given', 'detected' (one tolerance)
         or 'recognised' (model selection + temporal model, :mod:`.recognition`), with
         ', fallback k' when the k-th alternative relation had to be used.
+    :ivar guarded: True when the correction-size guard refused a correction far beyond the
+        stated pose noise (:attr:`~contact_correction.recognition.RecognitionOptions.\
+max_correction_sigma`) and a relation with fewer constraints, the non-penetration only
+        correction or the observation was used instead (the status says which).
     """
 
     T_moving: np.ndarray
@@ -71,6 +75,7 @@ class CorrectionResult:
     rotation_change: np.ndarray = field(default_factory=lambda: np.zeros(3))
     elapsed: float = 0.0
     relation_source: str = ''
+    guarded: bool = False
 
     @property
     def rotation_rank(self) -> int:
@@ -107,8 +112,8 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                  max_rotation: float = 0.35, residual_tolerance: float = RESIDUAL_TOLERANCE,
                  check_penetration: bool = True, penetration_spacing: float = 0.005,
                  element_margin: float = 1e-6,
-                 rank1_method: str = 'auto', prune_off_element: bool = False
-                 ) -> CorrectionResult:
+                 rank1_method: str = 'auto', prune_off_element: bool = False,
+                 penetration_before: Optional[float] = None) -> CorrectionResult:
     """
     Correct the observed pose of the moving object with the contact relation.
 
@@ -136,6 +141,8 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         elements when the rest of the relation has the same constraint rank (e.g. a vertex of
         a face-face contact beyond the overlap: its plane is the face's plane), instead of
         refusing the correction.
+    :param penetration_before: the observation's penetration depth [m] when the caller has
+        measured it already (same ``penetration_spacing``); None: measured here.
     """
     t0 = time.perf_counter()
     raw = np.array(T_moving, dtype=float, copy=True) if np.size(T_moving) == 16 \
@@ -163,8 +170,12 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         pairs = detect_contact_relation(moving, fixed, Tm, Tf, tolerance,
                                         penetration_tolerance, angle_tolerance)
     pairs = list(pairs)
-    pen_before = (penetration_depth(moving, fixed, Tm, Tf, penetration_spacing)
-                  if check_penetration else float('nan'))
+    if not check_penetration:
+        pen_before = float('nan')
+    elif penetration_before is not None:
+        pen_before = float(penetration_before)
+    else:
+        pen_before = penetration_depth(moving, fixed, Tm, Tf, penetration_spacing)
     if not pairs:
         return passthrough('no contact: no element pair within tolerance '
                            f'{tolerance:.3g} m; pose passed through',

@@ -294,6 +294,15 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
                    help='at a contact change the evidence does not pin down, enforce only the '
                         'contacts common to both relations when the other is within this '
                         'score margin (forward costs with --online; 0: off)')
+    g.add_argument('--evidence-chi2', type=float, default=9.0,
+                   help="drop constraints of the temporal model's relation that the frame "
+                        'rejects: a nested relation fitting better by more than this chi2 '
+                        '(1 constraint; same tail probability for more) is used (0: off)')
+    g.add_argument('--max-correction-sigma', type=float, default=4.0,
+                   help='correction-size guard k: a correction over k sigma_translation or k '
+                        'sigma_rotation is refused; relations with fewer constraints, then '
+                        'only the penetration removed, are tried; flagged "guard" in the '
+                        'status (0: off)')
     g.add_argument('--tolerance', type=float, default=0.002,
                    help='contact distance of --per-frame-detection [m]')
     g.add_argument('--penetration-tolerance', type=float, default=None,
@@ -314,7 +323,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     ap.add_argument('--figure', type=Path, default=None, help='write a Fig. 9-like PNG')
     args = ap.parse_args(argv)
     for name in ('sigma_translation', 'sigma_rotation_deg', 'search_margin', 'free_dof_penalty',
-                 'switch_cost', 'ambiguity_margin', 'tolerance', 'penetration_tolerance',
+                 'switch_cost', 'ambiguity_margin', 'evidence_chi2', 'max_correction_sigma',
+                 'tolerance', 'penetration_tolerance',
                  'element_margin', 'max_translation', 'max_rotation_deg', 'residual_tolerance'):
         v = getattr(args, name)
         if v is not None and (not np.isfinite(v) or v < 0):
@@ -376,7 +386,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                            search_margin=args.search_margin,
                            free_dof_penalty=args.free_dof_penalty,
                            switch_cost=args.switch_cost,
-                           ambiguity_margin=args.ambiguity_margin)
+                           ambiguity_margin=args.ambiguity_margin,
+                           evidence_chi2=args.evidence_chi2,
+                           max_correction_sigma=args.max_correction_sigma)
     relations = [relation] * len(Tm) if relation is not None else None
     try:
         results = correct_trajectory(moving, fixed, Tm, Tf, relations=relations,
@@ -387,7 +399,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     write_csv(args.output, stamps, results)
     n_ok = sum(r.corrected for r in results)
-    print(f'correct_trajectory: {n_ok} of {len(results)} frames corrected -> {args.output}')
+    n_guard = sum(r.guarded for r in results)
+    print(f'correct_trajectory: {n_ok} of {len(results)} frames corrected -> {args.output}'
+          + (f'; {n_guard} guarded (a correction beyond --max-correction-sigma refused, see '
+             'the status column)' if n_guard else ''))
     for k, r in enumerate(results):
         if not r.corrected and 'no contact' not in r.status:
             print(f'  frame {k}: {r.status}', file=sys.stderr)

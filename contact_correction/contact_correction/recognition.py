@@ -40,6 +40,7 @@ All quantities are in the fixed object's model frame, metres and radians.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 from typing import Dict, FrozenSet, Hashable, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -81,6 +82,23 @@ class RecognitionOptions:
         relation: no direction that one of them leaves free is constrained). 0 disables it.
         Online (:meth:`RelationTracker.update`) the forward costs take the min-marginals'
         place, and the rule applies only when some group is common.
+    :ivar evidence_chi2: the frame's evidence against the temporal model: when a relation
+        nested in the chosen one (a subset of its groups, lower rank) explains the frame better
+        by more than this chi2 per constraint it drops, the nested relation is used (a
+        likelihood-ratio test: 9 = 3 sigma for one constraint). The temporal prior (the
+        switch cost) may keep a relation over frames that fit it a little worse, never one
+        that the frame rejects at 3 sigma (e.g. a peg entering a hole kept on the top face by
+        hysteresis: its correction moved the peg 4-5 mm back up along the free direction).
+        Online only (:meth:`RelationTracker.update`: the node, ``--online``): offline the
+        Viterbi back-tracking sees the frames that follow and keeps a contact through an
+        outlier frame. 0 disables it.
+    :ivar max_correction_sigma: the correction-size guard ``k``: a correction whose
+        translation of the moving origin exceeds ``k sigma_translation`` or whose rotation
+        exceeds ``k sigma_rotation`` is far beyond the stated pose noise and is not applied
+        blindly: the relations nested in it (fewer constraints), then the non-penetration
+        only correction (push-out), are tried, and the result is flagged (``guarded``). 4: a
+        3-D error of the stated per-axis noise is above 4 sigma with probability 0.1 %.
+        0 disables it.
     """
 
     sigma_translation: float = 0.001
@@ -92,6 +110,8 @@ class RecognitionOptions:
     angle_tolerance: Optional[float] = None
     beam: int = 6
     ambiguity_margin: float = 5.0
+    evidence_chi2: float = 9.0
+    max_correction_sigma: float = 4.0
 
     def validate(self) -> None:
         """
@@ -100,7 +120,7 @@ class RecognitionOptions:
         :raises ValueError: on a non-finite or out-of-range value, naming it.
         """
         for name in ('sigma_translation', 'sigma_rotation', 'sigma_model', 'switch_cost',
-                     'ambiguity_margin'):
+                     'ambiguity_margin', 'evidence_chi2', 'max_correction_sigma'):
             v = getattr(self, name)
             if not np.isfinite(v) or v < 0:
                 raise ValueError(f'{name} must be a finite number >= 0, got {v}')
@@ -186,9 +206,50 @@ class FrameCandidates:
                           float('nan'), -1, float('nan'))
 
 
+#: slack, in units of sigma_translation, of the guard's nearest-exit test: a vertex inside the
+#: other solid penetrates a face only when that face is no farther than the nearest surface
+#: plus this slack (was 1.5: a peg corner entering a zero-clearance hole, pushed 0.5-1.6 mm
+#: into the wall by the noise and 2.8 mm below the top face, took the top face as its exit and
+#: the relation's correction lifted the peg by the insertion depth)
+EXIT_SLACK = 0.5
+
 #: chi2 by which a relation with fewer constraints must explain a frame better than the chosen
 #: one to make it ambiguous (the data favour it, only the priors do not)
 AMBIGUITY_FIT = 1.0
+
+
+def chi2_survival(x: float, dof: int) -> float:
+    """P(X > x) for X chi-square distributed with integer ``dof`` >= 1 degrees of freedom."""
+    x = max(float(x), 0.0)
+    h = x / 2.0
+    if dof % 2 == 0:
+        term, total = 1.0, 1.0
+        for i in range(1, dof // 2):
+            term *= h / i
+            total += term
+        return float(np.exp(-h) * total)
+    total = math.erfc(math.sqrt(h))
+    for i in range((dof - 1) // 2):
+        total += math.exp(-h + (i + 0.5) * math.log(h) - math.lgamma(i + 1.5)) if h > 0 else 0.0
+    return float(total)
+
+
+def chi2_threshold(chi2_one_dof: float, dof: int) -> float:
+    """
+    Return the chi-square quantile for ``dof`` at the tail probability of ``chi2_one_dof``.
+
+    The tail probability is that of ``chi2_one_dof`` with one degree of freedom (e.g. 9 ->
+    p 0.0027 -> 11.8 for 2 dof, 14.2 for 3).
+    """
+    p = chi2_survival(chi2_one_dof, 1)
+    lo, hi = 0.0, max(chi2_one_dof, 1.0) * (dof + 2.0) + 50.0
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        if chi2_survival(mid, dof) > p:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
 def common_state(states: Sequence[State]) -> State:
@@ -272,6 +333,8 @@ class RelationRecognizer:
         self.cos_tol = float(np.cos(self.angle))
         o = self.options
         self._w = np.array([o.sigma_rotation] * 3 + [o.sigma_translation] * 3)
+        self._evidence = {k: chi2_threshold(o.evidence_chi2, k) if o.evidence_chi2 > 0
+                          else float('inf') for k in range(1, 7)}
 
     # --- one frame -------------------------------------------------------------------------
 
@@ -343,7 +406,7 @@ class RelationRecognizer:
         not penetrating that face.
         """
         out = np.ones(len(pool), dtype=bool)
-        tol = 1.5 * self.options.sigma_translation
+        tol = EXIT_SLACK * self.options.sigma_translation
         R, t = T_rel[:3, :3], T_rel[:3, 3]
         Ri, ti = R.T, -R.T @ t
         for k, p in enumerate(pool):
@@ -382,6 +445,48 @@ class RelationRecognizer:
                 return h
             h = best
         return h
+
+    def nested(self, h: Hypothesis) -> List[Hypothesis]:
+        """
+        Relations nested in ``h`` (its groups less one or more) with a lower rank, best first.
+
+        Scored in the current frame: each group of ``h`` dropped in turn, and again from the
+        best of those (two levels).
+        """
+        out: Dict[State, Hypothesis] = {}
+        level = [h]
+        for _ in range(2):
+            nxt = []
+            for g in level:
+                for k in g.state:
+                    s = g.state - {k}
+                    if s in out:
+                        continue
+                    c = self.evaluate(s)
+                    if c is not None:
+                        out[s] = c
+                        nxt.append(c)
+            level = sorted(nxt, key=lambda c: c.score)[:2]
+        return sorted((c for c in out.values() if c.rank < h.rank),
+                      key=lambda c: c.score)
+
+    def evidence_check(self, h: Hypothesis) -> Hypothesis:
+        """
+        Drop constraints of ``h`` that the current frame rejects (``evidence_chi2``).
+
+        :returns: ``h``, or the best-scoring nested relation whose chi2 is lower than ``h``'s by
+            more than ``evidence_chi2`` per constraint dropped.
+        """
+        if self.options.evidence_chi2 <= 0 or not h.state or not np.isfinite(h.chi2):
+            return h
+        for c in self.nested(h):
+            if h.chi2 - c.chi2 > self.evidence_limit(h.rank - c.rank):
+                return c
+        return h
+
+    def evidence_limit(self, dropped: int) -> float:
+        """Chi2 decrease that rejects ``dropped`` constraints (``evidence_chi2``'s level)."""
+        return self._evidence[min(max(int(dropped), 1), 6)]
 
     def evaluate(self, state: State) -> Optional[Hypothesis]:
         """
@@ -524,6 +629,8 @@ class RelationTracker:
                 # (not when nothing is common: the observation would be passed through or,
                 # penetrating, pushed out, which may move it along the free directions)
                 h = fc.hypothesis(common)
+        if h.state in fc.hypotheses:
+            h = rec.evidence_check(h)
         return h, fc
 
     def backtrack(self) -> List[Hypothesis]:

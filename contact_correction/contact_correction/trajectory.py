@@ -14,7 +14,10 @@ When the correction with the chosen relation is refused (not satisfiable, degene
 points off their elements, penetration left, correction over the limits) the next best
 relations of the frame are tried (fewer or other constraints), and a penetrating observation
 with no usable relation is pushed out by the non-linear step on its penetrating pairs, so that
-penetration is not passed through.
+penetration is not passed through. A correction far beyond the stated pose noise (the
+correction-size guard, ``RecognitionOptions.max_correction_sigma``) is not applied blindly:
+the relations nested in the chosen one, then the non-penetration only correction, are tried
+and the result is flagged (``CorrectionResult.guarded``).
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from .recognition import (
     RelationTracker)
 
 __all__ = ['correct_trajectory', 'trajectory_components', 'ContactCorrector',
-           'correct_recognised']
+           'correct_recognised', 'guard_limits']
 
 #: alternative relations tried when the chosen one is refused
 MAX_FALLBACKS = 3
@@ -43,6 +46,7 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                        T_fixed: np.ndarray, chosen: Hypothesis, frame: FrameCandidates,
                        guard: Optional[np.ndarray] = None,
                        recognition_margin: Optional[float] = None,
+                       guard_limits: Optional[Tuple[float, float]] = None,
                        **kwargs: Any) -> CorrectionResult:
     """
     Correct one frame with a recognised relation, with fallbacks.
@@ -55,6 +59,12 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
     :param guard: the pool's guard flags (pairs whose penetration is real).
     :param recognition_margin: the recognition's search margin [m]: contact points may end up
         this far outside their elements (default: ``kwargs['element_margin']`` only).
+    :param guard_limits: the correction-size guard (translation of the moving origin [m],
+        rotation [rad]; ``max_correction_sigma`` times the stated noise): a correction with the
+        chosen relation or a fallback beyond either is refused; the relations nested in the
+        chosen one (fewer constraints, best score first) are tried, then the non-penetration
+        only correction (a penetrating observation pushed out) or the observation itself; the
+        result is flagged ``guarded``. None: no guard.
     :param kwargs: passed to :func:`~contact_correction.correction.correct_pose`.
     """
     kwargs = dict(kwargs)
@@ -68,6 +78,8 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
     spacing = kwargs.get('penetration_spacing', 0.005)
     pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check \
         else float('nan')
+    if check:
+        kwargs['penetration_before'] = pen      # every attempt starts from the observation
     tol = max(kwargs.get('residual_tolerance', 1e-9), 1e-6)
     margin_exit = 1e-4     # [m] faces this close to the nearest exit of a vertex count as exits
 
@@ -117,12 +129,64 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
             T_try = r.T_nonlinear
         return None
 
+    def over(r: CorrectionResult) -> bool:
+        if guard_limits is None or not r.corrected:
+            return False
+        return bool(np.linalg.norm(r.translation_change) > guard_limits[0]
+                    or np.linalg.norm(r.rotation_change) > guard_limits[1])
+
+    def size(r: CorrectionResult) -> str:
+        return (f'{np.linalg.norm(r.translation_change) * 1e3:.2f} mm / '
+                f'{np.degrees(np.linalg.norm(r.rotation_change)):.2f} deg')
+
+    def refuse(r: CorrectionResult, why: str) -> CorrectionResult:
+        r.T_moving = np.array(T_moving, dtype=float)
+        r.corrected, r.guarded, r.method = False, True, 'passthrough'
+        r.status += f' (guard: {why} refused)'
+        return r
+
+    def guarded(r: CorrectionResult, why: str) -> CorrectionResult:
+        r.guarded = True
+        r.status += f' (guard: {why})'
+        return r
+
     first: Optional[CorrectionResult] = None
+    oversize: List[CorrectionResult] = []   # non-penetrating corrections beyond the guard
     if chosen.pairs:
         r = correct_pose(moving, fixed, T_moving, T_fixed, list(chosen.pairs), **kwargs)
         r.relation_source = 'recognised'
-        if r.corrected:
+        if r.corrected and not over(r):
             return r
+        if r.corrected:
+            # far beyond the stated noise: a relation with fewer constraints, else only
+            # non-penetration, else the observation (never silently)
+            why = (f'the chosen relation ({chosen.rank} constraints) needed {size(r)}, over '
+                   f'{guard_limits[0] * 1e3:.2f} mm / {np.degrees(guard_limits[1]):.2f} deg')
+            nested = sorted((h for h in frame.hypotheses.values()
+                             if h.state < chosen.state and 0 <= h.rank < chosen.rank
+                             and np.isfinite(h.score)), key=lambda h: h.score)
+            for h in nested[:MAX_FALLBACKS]:
+                if not h.pairs:
+                    break
+                r2 = correct_pose(moving, fixed, T_moving, T_fixed, list(h.pairs), **kwargs)
+                r2.relation_source = 'recognised, guard'
+                if r2.corrected and not over(r2):
+                    return guarded(r2, why + f'; a nested relation of rank {h.rank} used')
+            if check and pen > tol:
+                r2 = push_out(())
+                if r2 is not None:
+                    r2.relation_source = 'recognised, guard'
+                    guarded(r2, why + '; only the penetration removed')
+                    if not over(r2):
+                        return r2
+                    oversize.append(r2)
+            if not check or pen <= tol:
+                r2 = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
+                                      status='pose passed through', penetration_before=pen,
+                                      penetration_after=pen)
+                r2.relation_source = 'recognised, guard'
+                return guarded(r2, why + '; no smaller feasible correction')
+            refuse(r, why)
         first = r
     elif not check or pen <= tol:
         r = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
@@ -132,7 +196,7 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                              penetration_after=pen)
         r.relation_source = 'recognised'
         return r
-    if check and pen > tol:
+    if check and pen > tol and not (first is not None and first.guarded):
         # the chosen relation (free, or one whose correction leaves penetration) plus only
         # what penetrates: the smallest change that removes the penetration, rather than
         # another relation of the frame that may constrain a free direction
@@ -141,29 +205,57 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
             r.status += (' (push-out: the chosen relation ' + (
                 f'could not be enforced: {first.status}' if first is not None else 'is free')
                 + ' and the observation penetrates)')
-            return r
+            if not over(r):
+                return r
+            oversize.append(r)
     order = [h for h in frame.ranked() if h.state != chosen.state and h.pairs]
     for k, h in enumerate(order[:MAX_FALLBACKS]):
         r = correct_pose(moving, fixed, T_moving, T_fixed, list(h.pairs), **kwargs)
         r.relation_source = f'recognised, fallback {k + 1}'
+        if r.corrected and over(r):
+            refuse(r, f'fallback correction {size(r)}')
         if r.corrected:
             r.status += f' (fallback: relation {k + 2} of the frame; the chosen one: ' \
                         f'{first.status if first else "free"})'
             return r
         first = first or r
-    if check and pen > tol and chosen.pairs:
+    if check and pen > tol and chosen.pairs and not (first is not None and first.guarded):
         # last resort: the penetrating pairs alone
         r = push_out(())
         if r is not None:
             r.status += ' (push-out: no recognised relation could be enforced and the ' \
                         'observation penetrates)'
-            return r
+            if not over(r):
+                return r
+            oversize.append(r)
+    if oversize:
+        # every non-penetrating correction found is beyond the guard: the smallest (stated
+        # noise units), flagged, rather than penetration passed through
+        w = np.array([guard_limits[0], guard_limits[1]])
+        r = min(oversize, key=lambda c: float(np.hypot(
+            np.linalg.norm(c.translation_change) / w[0],
+            np.linalg.norm(c.rotation_change) / w[1])))
+        return guarded(r, f'{size(r)} over the limits, the smallest non-penetrating '
+                          'correction found')
     if first is None:
         first = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
                                  status='no usable relation; pose passed through',
                                  penetration_before=pen)
     first.relation_source = 'recognised'
     return first
+
+
+def guard_limits(options: RecognitionOptions) -> Optional[Tuple[float, float]]:
+    """
+    Return the correction-size guard of ``options``.
+
+    :returns: (translation [m], rotation [rad]) = ``max_correction_sigma`` times the stated
+        noise, or None when the guard is disabled (``max_correction_sigma`` 0).
+    """
+    k = float(options.max_correction_sigma)
+    if k <= 0:
+        return None
+    return k * float(options.sigma_translation), k * float(options.sigma_rotation)
 
 
 def _really_penetrating(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
@@ -233,7 +325,7 @@ class ContactCorrector:
         h, fc = self.tracker.update(T_moving, T_fixed)
         return correct_recognised(self.moving, self.fixed, T_moving, T_fixed, h, fc,
                                   self.recognizer.last_guard(), self.recognizer.margin,
-                                  **self.kwargs)
+                                  guard_limits(self.recognizer.options), **self.kwargs)
 
 
 def correct_trajectory(moving: Polyhedron, fixed: Polyhedron, moving_poses: np.ndarray,
@@ -276,7 +368,8 @@ def correct_trajectory(moving: Polyhedron, fixed: Polyhedron, moving_poses: np.n
         if rel is None and chosen is not None and np.all(np.isfinite(Tm[k])) \
                 and np.all(np.isfinite(Tf[k])):
             out.append(correct_recognised(moving, fixed, Tm[k], Tf[k], chosen[k], frames[k],
-                                          guards[k], rec.margin, **kwargs))
+                                          guards[k], rec.margin, guard_limits(recognition),
+                                          **kwargs))
             continue
         r = correct_pose(moving, fixed, Tm[k], Tf[k], rel, **kwargs)
         r.relation_source = 'given' if rel is not None else 'detected'

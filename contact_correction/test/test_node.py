@@ -93,6 +93,38 @@ def test_far_pose_and_parameters(ros_node, corrector):
     assert corrector.set_parameters([Parameter('optimal', value=False)])[0].successful
 
 
+@pytest.mark.ros
+def test_guarded_correction_is_counted_not_applied(ros_node):
+    """
+    Peg resting on the top face (beside the hole), then one frame 5 mm up.
+
+    Without the evidence rule (``evidence_chi2`` 0) the hysteresis keeps the contact; the
+    correction back down would be 5 sigma (stated 1 mm), beyond ``max_correction_sigma`` 4: not
+    applied (no penetration to remove: the observation is passed through), counted, flagged.
+    """
+    node = ContactCorrectionNode(context=ros_node.context, parameter_overrides=[
+        Parameter('moving_object', value='peg'), Parameter('fixed_object', value='hole_block'),
+        Parameter('fixed_pose_static', value=STATIC), Parameter('evidence_chi2', value=0.0)])
+    try:
+        states, poses = [], []
+        ros_node.create_subscription(ContactState, 'contact_state', states.append, 10)
+        ros_node.create_subscription(PoseStamped, 'corrected_pose', poses.append, 10)
+        pub = ros_node.create_publisher(PoseStamped, 'moving_pose', 10)
+        assert _spin_both([ros_node, node], lambda: pub.get_subscription_count() > 0)
+        track = [make_transform(np.eye(3), [0.05, 0.0, 0.0])] * 8 + \
+            [make_transform(np.eye(3), [0.05, 0.0, 0.005])]
+        for k, T in enumerate(track):
+            pub.publish(_stamped(T, (k + 1) * 10**7))
+            assert _spin_both([ros_node, node], lambda: len(states) > k and len(poses) > k, 10)
+        assert all(st.corrected for st in states[:8])
+        assert node.counts['guarded'] == 1
+        assert not states[8].corrected and 'guard' in states[8].status
+        assert '1 guarded' in states[8].status
+        assert pose_to_matrix(poses[8].pose)[2, 3] == pytest.approx(0.005, abs=1e-9)
+    finally:
+        node.destroy_node()
+
+
 def _call(node, server_node, request, timeout=30.0):
     nodes = [node] + ([server_node] if server_node is not None else [])
     return call_service(nodes, CorrectTrajectory, 'correct_trajectory', request, timeout)
