@@ -85,6 +85,11 @@ class JointEstimation:
                          'ambiguous twin')
         parts.append(f'noise {"estimated" if b.scale_estimated else "given"}: '
                      f'{b.sigma_position * 1000:.3g} mm, {np.rad2deg(b.sigma_rotation):.3g} deg')
+        if 'corner_noise_normalised' in b.extra:
+            parts.append(f'marker fit in the image: corner noise '
+                         f'{b.extra["corner_noise_normalised"]:.3g} (normalised; x focal length'
+                         f' = px), side {b.extra["marker_side"] * 1000:.0f} mm '
+                         f'({"estimated" if b.extra["marker_side_estimated"] else "given"})')
         if np.isfinite(b.coverage):
             unit, f = (('mm', 1000.0) if b.joint_type == JointType.PRISMATIC
                        else ('deg', np.rad2deg(1.0)))
