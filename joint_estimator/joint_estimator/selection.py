@@ -30,9 +30,11 @@ from typing import Dict, Iterable, Optional
 
 from joint_estimator.ambiguity import relative_candidates
 from joint_estimator.common import (
-    DegenerateMotionError, JOINT_DOF, JointFit, JointType, split_track, validate_track)
+    DegenerateMotionError, frame_residuals, JOINT_DOF, JointFit, JointType, split_track,
+    validate_track)
 from joint_estimator.marker_noise import (
-    estimate_marker_side, MIN_RAY_RATIO, refine_revolute_marker)
+    corner_angles, estimate_marker_side, marker_corners, MIN_RAY_RATIO, project_marker_corners,
+    refine_revolute_corners)
 from joint_estimator.models import DEFAULT_MIN_TRANSLATION_RANGE, fit_model, MIN_SAMPLES
 from joint_estimator.refine import axis_uncertainty, refine_model
 from joint_estimator.revolute import DEFAULT_MIN_ROTATION_RANGE, make_fit
@@ -40,6 +42,7 @@ from joint_estimator.robust import (
     _START_SIGMAS, candidate_residuals, DEFAULT_THRESHOLD, line_of_sight_ratio, rms_scales,
     robust_fit)
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 __all__ = ['JointEstimation', 'bic_score', 'outlier_cost', 'estimate_joint', 'qualify_fit',
            'unwrap_angles', 'ALL_TYPES', 'MAX_REJECTED_FRACTION', 'MIN_COVERAGE']
@@ -49,6 +52,11 @@ ALL_TYPES = tuple(JointType)
 MAX_REJECTED_FRACTION = 1.0 / 3.0
 #: A warning is raised when the inliers span less than this fraction of the motion.
 MIN_COVERAGE = 0.5
+#: Corner-space refit of a marker track: a frame is an inlier below this quantile of
+#: chi-square with 5 dof (its corner residual over the estimated corner noise).
+CORNER_FRAME_QUANTILE = 0.999
+#: Corner-space refit: most re-classification rounds.
+CORNER_ROUNDS = 3
 
 
 @dataclass
@@ -77,6 +85,11 @@ class JointEstimation:
                          'ambiguous twin')
         parts.append(f'noise {"estimated" if b.scale_estimated else "given"}: '
                      f'{b.sigma_position * 1000:.3g} mm, {np.rad2deg(b.sigma_rotation):.3g} deg')
+        if 'corner_noise_normalised' in b.extra:
+            parts.append(f'marker fit in the image: corner noise '
+                         f'{b.extra["corner_noise_normalised"]:.3g} (normalised; x focal length'
+                         f' = px), side {b.extra["marker_side"] * 1000:.0f} mm '
+                         f'({"estimated" if b.extra["marker_side_estimated"] else "given"})')
         if np.isfinite(b.coverage):
             unit, f = (('mm', 1000.0) if b.joint_type == JointType.PRISMATIC
                        else ('deg', np.rad2deg(1.0)))
@@ -365,61 +378,99 @@ def estimate_joint(poses: np.ndarray, joint_type: Optional[int] = None,
 def _marker_refit(fit: JointFit, Rc: np.ndarray, pc: np.ndarray, ray_ratio: float,
                   side: Optional[float], normal_axis: int, correction: str):
     """
-    Refit the revolute ``fit`` with per-frame marker information.
+    Refit the revolute ``fit`` in the image space of the marker's corners.
 
-    The revolute ``fit`` is refitted on its inliers (same twins) with per-frame marker
-    information (:func:`joint_estimator.marker_noise.refine_revolute_marker`).
+    The measured poses are turned back into their marker corners and the joint is fitted by
+    maximum likelihood on them (:func:`joint_estimator.marker_noise.refine_revolute_corners`;
+    the marker side estimated from the line-of-sight ratio unless given). The robust fit's
+    inliers start it; then every frame is re-classified by its corner residual (chi-square
+    with 5 dof at :data:`CORNER_FRAME_QUANTILE`, the corner noise estimated from the inliers)
+    and the fit repeated until the inlier set is stable: a flipped pose reprojects nearly like
+    the correct one and a face-on frame's uncertain tilt is no outlier there, so the frames the
+    pose-space fit had to reject or repair are used as they were measured.
 
-    The refit is used only when the per-frame marker model explains the inliers' residuals
-    better (lower -2 log-likelihood) than the isotropic model with the line-of-sight ratio, so
-    a track that merely looks anisotropic (a noisy ratio from few frames) keeps its fit.
-    The inliers are kept: re-classifying the frames under the per-frame Gaussian model kept
-    nearly all of them and made the axis line worse on the issue-14 tracks (p95 5.1 -> 8.6 mm
-    on 20 tracks): the frames the robust fit rejects are not described by that model (a marker
-    seen nearly face-on has a non-Gaussian tilt, and a wrongly chosen twin is not noise).
+    The refit is used only when the corner model explains the robust fit's inlier frames
+    better (lower -2 log-likelihood of the poses, per-frame Gaussian ``sigma_n^2 W^-1``) than
+    the isotropic model with the line-of-sight ratio, so a track that merely looks
+    anisotropic (a noisy ratio from few frames) keeps its fit.
 
-    :param Rc: (N, K, 3, 3), :param pc: (N, K, 3) [m]: candidate poses per frame.
-    :returns: ``(new JointFit, refinement result, (R_sel, p_sel))`` or None when the
-        positions are not in front of the camera or the refit fails.
+    :param Rc: (N, K, 3, 3), :param pc: (N, K, 3) [m]: candidate poses per frame (index 0 the
+        measured pose).
+    :returns: ``(new JointFit, refinement result, (R, p))`` or None when the positions are not
+        in front of the camera or the refit fails or is not better.
     """
     n = Rc.shape[0]
+    R, p = Rc[:, 0], pc[:, 0]
+    inl = fit.inliers.copy()
+    if inl.sum() < 3 or np.any(p[:, 2] <= 0.0):
+        return None
     rows = np.arange(n)
     choice = np.zeros(n, dtype=int)
     if fit.repaired is not None and Rc.shape[1] > 1:
         choice[fit.repaired] = 1
-    inl = fit.inliers
-    R, p = Rc[rows, choice], pc[rows, choice]
-    if inl.sum() < 3 or np.any(p[inl, 2] <= 0.0):
-        return None
+    R_sel, p_sel = Rc[rows, choice], pc[rows, choice]
     estimated = side is None
     if estimated:
-        side = estimate_marker_side(R[inl], p[inl], ray_ratio, normal_axis)
+        side = estimate_marker_side(R_sel[inl], p_sel[inl], ray_ratio, normal_axis)
+    q_all = fit.coordinates[:, 0].copy()
+    threshold = float(chi2_dist.ppf(CORNER_FRAME_QUANTILE, 5))
     try:
-        res = refine_revolute_marker(fit.model, R[inl], p[inl], side, normal_axis)
+        res = refine_revolute_corners(fit.model, R[inl], p[inl], side, normal_axis,
+                                      q0=q_all[inl])
+        # keep the corner model only where it explains the inliers better than the isotropic
+        # one with its line-of-sight ratio (both at their own estimates, -2 log L)
+        ratio = fit.extra.get('line_of_sight_noise_ratio', ray_ratio)
+        iso = float(fit.chi2[inl].sum() + inl.sum() * (
+            6.0 * np.log(2.0 * np.pi * fit.sigma_position * fit.sigma_rotation)
+            + 2.0 * np.log(ratio)))
+        first_neg2ll = res['neg2_log_likelihood']
+        if not first_neg2ll < iso:
+            return None
+        C = marker_corners(side, normal_axis)
+        uv = project_marker_corners(R, p, C)
+        for _ in range(CORNER_ROUNDS):
+            m = res['model']
+            q_all[inl] = res['angles']
+            q_all = corner_angles(m, uv, C, q_all)
+            T = m.pose_at(q_all)
+            r2 = np.sum((project_marker_corners(T[:, :3, :3], T[:, :3, 3], C) - uv) ** 2,
+                        axis=(1, 2))
+            new = r2 / res['sigma_n'] ** 2 < threshold
+            if new.sum() < 3 or np.array_equal(new, inl):
+                break
+            inl = new
+            res = refine_revolute_corners(m, R[inl], p[inl], side, normal_axis,
+                                          q0=q_all[inl])
     except (np.linalg.LinAlgError, ValueError):
-        return None
-    # keep the per-frame marker model only where it explains the residuals better than the
-    # isotropic one with its line-of-sight ratio (both at their own estimates, -2 log L)
-    ratio = fit.extra.get('line_of_sight_noise_ratio', ray_ratio)
-    iso = float(fit.chi2[inl].sum() + inl.sum() * (
-        6.0 * np.log(2.0 * np.pi * fit.sigma_position * fit.sigma_rotation)
-        + 2.0 * np.log(ratio)))
-    if not res['neg2_log_likelihood'] < iso:
         return None
     m = res['model']
     if not np.all(np.isfinite(np.concatenate([m.axis_in_a, m.axis_in_b, m.point_in_a,
                                               m.point_in_b]))):
         return None
-    new = make_fit(m, R, p, fit.sigma_position, fit.sigma_rotation, correction, inl,
+    # the fit used the measured poses; for the report and the corrected track, a frame whose
+    # ambiguity twin is nearer the joint's orientation at its angle counts as flipped
+    q_all[inl] = res['angles']
+    q_all = corner_angles(m, uv, C, q_all)
+    T = m.pose_at(q_all)
+    gap = 3.0 - np.einsum('nij,nkij->nk', T[:, :3, :3], Rc)        # chordal, per candidate
+    choice = np.argmin(gap, axis=1)
+    R_sel, p_sel = Rc[rows, choice], pc[rows, choice]
+    new = make_fit(m, R_sel, p_sel, fit.sigma_position, fit.sigma_rotation, correction, inl,
                    ray_ratio)
-    new.repaired, new.scale_estimated, new.score = fit.repaired, fit.scale_estimated, fit.score
+    new.coordinates = q_all[:, None]
+    new.corrected = T
+    new.rotation_residuals, new.position_residuals, _ = frame_residuals(
+        R_sel, p_sel, T[:, :3, :3], T[:, :3, 3], fit.sigma_position, fit.sigma_rotation)
+    new.repaired = (choice != 0) & inl
+    new.scale_estimated, new.score = fit.scale_estimated, fit.score
     new.extra.update({k: v for k, v in fit.extra.items() if k not in new.extra})
     new.extra.update({'marker_side': float(side), 'marker_side_estimated': estimated,
                       'corner_noise_normalised': res['sigma_n'],
                       'isotropic_model': fit.model,
-                      'neg2_log_likelihood': {'marker': res['neg2_log_likelihood'],
-                                              'isotropic': iso}})
-    return new, res, (R, p)
+                      'isotropic_inliers': fit.inliers,
+                      'isotropic_repaired': fit.repaired,
+                      'neg2_log_likelihood': {'marker': first_neg2ll, 'isotropic': iso}})
+    return new, res, (R_sel, p_sel)
 
 
 def _plain_scales(model, R, p, sigma_position, sigma_rotation) -> tuple:
