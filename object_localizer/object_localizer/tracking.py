@@ -46,6 +46,7 @@ import time
 from typing import Any, Callable, Deque, List, Optional, Sequence, Tuple
 
 import numpy as np
+from object_localizer.crop import crop_near, crop_rays, crop_window
 from object_localizer.localization import localize, ModelTemplate, prepare_model, sample_surface
 from object_localizer.point_to_plane import icp_point_to_plane
 import open3d as o3d
@@ -334,11 +335,7 @@ class SceneCloud:
         a0, b0 = float(centre[0]) / cz, float(centre[1]) / cz
         rho = radius / np.sqrt(max(cz * cz - radius * radius, 1e-12)) * \
             np.sqrt(1.0 + a0 * a0 + b0 * b0) * 1.05
-        P, z = self.points, self._z
-        with np.errstate(invalid='ignore'):
-            keep = self._front & (np.abs(P[:, 0] - a0 * z) <= rho * z) & \
-                (np.abs(P[:, 1] - b0 * z) <= rho * z)
-        return P[keep].astype(np.float64)
+        return crop_rays(self.points, a0, b0, rho)
 
     def around_box(self, pose: np.ndarray, model_points: np.ndarray, margin: float = 0.0
                    ) -> np.ndarray:
@@ -458,7 +455,9 @@ def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points
     holes[1:-1, :] |= mask[:-2, :] & mask[2:, :]
     holes[:, 1:-1] |= mask[:, :-2] & mask[:, 2:]
     sil[holes & ~mask] = np.nanmax(sil)
-    observed = observe_depth(cone_points, camera, stride=1).depth
+    # only the rays through the image (the others fall outside it): one compiled pass
+    observed = observe_depth(crop_window(cone_points, lo - pixel, hi + pixel), camera,
+                             stride=1).depth
     sup, cont = silhouette_edges(sil, observed, settings.edge_threshold, gap)
     if sup + cont < settings.min_edge_samples:
         return float('nan')
@@ -501,16 +500,15 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
     # Virtual image over the model's silhouette, pixel ~ 1.5 x the scene's angular spacing.
     a = P[:, :2] / P[:, 2:3]
     lo, hi = a.min(axis=0), a.max(axis=0)
-    ca = cone_points[:, :2] / cone_points[:, 2:3]
-    inside = np.all((ca >= lo) & (ca <= hi), axis=1)
+    inside = crop_window(cone_points, lo, hi)     # the scene on the rays of the silhouette
     area = float(np.prod(np.maximum(hi - lo, 1e-6)))
-    pixel = 1.5 * np.sqrt(area / max(int(np.count_nonzero(inside)), 1))
+    pixel = 1.5 * np.sqrt(area / max(len(inside), 1))
     pixel = max(pixel, 1e-4)
     shape = (int((hi[1] - lo[1]) / pixel) + 1, int((hi[0] - lo[0]) / pixel) + 1)
     if shape[0] * shape[1] > 4_000_000:
         q.reason = 'scene too sparse on the object to verify'
         return q
-    observed = _range_image(cone_points[inside], pixel, lo, shape)
+    observed = _range_image(inside, pixel, lo, shape)
     own = _range_image(P, pixel, lo, shape)
     idx, ok = _pixels(P, pixel, lo, shape)
     idx = np.where(ok, idx, 0)
@@ -731,11 +729,10 @@ class ObjectTracker:
         reach = m.radius + 2.0 * s.max_distance
         centre = start[:3, :3] @ m.centre + start[:3, 3]
         cone = scene.cone(centre, reach)
-        near = cone[np.einsum('ij,ij->i', cone - centre, cone - centre) <= reach * reach]
-        # then the model's bounding box at the start pose, grown by the ICP reach
-        local = (near - start[:3, 3]) @ start[:3, :3]
+        # within reach of the centre and in the model's bounding box at the start pose, grown
+        # by the ICP reach
         margin = 2.0 * s.max_distance
-        near = near[np.all((local >= m.box_min - margin) & (local <= m.box_max + margin), axis=1)]
+        near = crop_near(cone, centre, reach, start, m.box_min - margin, m.box_max + margin)
         if len(near) < 10:
             return start, PoseQuality(reason=f'only {len(near)} scene points near the pose')
         pose = track_icp(m, near, start, s)
