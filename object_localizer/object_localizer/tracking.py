@@ -140,6 +140,7 @@ class TrackerSettings:
     icp_iterations: int = 30
     icp_min_step: float = 1e-6
     icp_coarse_min_step: float = 1e-4
+    icp_min_residual_step: float = 1e-6
     scene_voxel: float = 0.003
     max_icp_points: int = 1000
     inlier_distance: float = 0.003
@@ -607,15 +608,17 @@ def track_icp(model: TrackingModel, near_points: np.ndarray, start: np.ndarray,
         step = len(S) / s.max_icp_points
         S = S[np.floor(np.arange(s.max_icp_points) * step).astype(int)]
     pose = np.asarray(start, dtype=float).copy()
-    for scale, reach, min_step in ((3.0 * s.loss_scale, 2.0 * s.max_distance,
-                                    s.icp_coarse_min_step),
-                                   (s.loss_scale, s.max_distance, s.icp_min_step)):
+    for scale, reach, min_step, min_residual in (
+            (3.0 * s.loss_scale, 2.0 * s.max_distance, s.icp_coarse_min_step,
+             s.icp_coarse_min_step),
+            (s.loss_scale, s.max_distance, s.icp_min_step, s.icp_min_residual_step)):
         P, N = _visible_target(model, pose)
         if len(P) < 3 or len(S) < 3:
             break
         # target frame = sensor; the scene is moved onto the model: T_scene->model_at_pose
         correction, _, _, _ = icp_point_to_plane(S, P, N, reach, scale, s.icp_iterations,
-                                                 tolerance=1e-6, min_step=min_step)
+                                                 tolerance=1e-6, min_step=min_step,
+                                                 min_residual_step=min_residual)
         pose = np.linalg.solve(correction, pose)
     return pose
 
