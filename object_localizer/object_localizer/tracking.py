@@ -457,8 +457,9 @@ def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points
     holes[:, 1:-1] |= mask[:, :-2] & mask[:, 2:]
     sil[holes & ~mask] = np.nanmax(sil)
     # only the rays through the image (the others fall outside it): one compiled pass
-    observed = observe_depth(crop_window(cone_points, lo - pixel, hi + pixel), camera,
-                             stride=1).depth
+    window = crop_window(cone_points, lo - pixel, hi + pixel)
+    observed = observe_depth(window, camera, stride=1).depth if len(window) else \
+        np.full((height, width), np.nan)
     sup, cont = silhouette_edges(sil, observed, settings.edge_threshold, gap)
     if sup + cont < settings.min_edge_samples:
         return float('nan')
