@@ -338,23 +338,20 @@ class SceneCloud:
             np.sqrt(1.0 + a0 * a0 + b0 * b0) * 1.05
         return crop_rays(self.points, a0, b0, rho)
 
-    def around_box(self, pose: np.ndarray, model_points: np.ndarray, margin: float = 0.0
-                   ) -> np.ndarray:
+    def in_box(self, pose: np.ndarray, model_points: np.ndarray, margin: float = 0.0
+               ) -> np.ndarray:
         """
-        Return the points that may lie in the grown bounding box of the model.
+        Return the points inside the grown bounding box of the model, in the cloud's order.
 
-        Points (M, 3) float64 that may lie in the bounding box of ``model_points`` (model
-        frame [m]) grown by ``margin`` [m] at ``pose`` (4x4 model -> sensor): those on rays
-        through the box's circumscribed sphere (:meth:`cone`; every finite point when the
-        sphere reaches the sensor). A cheap superset for cropping to the box.
+        Points (M, 3) float64 inside the bounding box of ``model_points`` (model frame [m])
+        grown by ``margin`` [m] on every side, at ``pose`` (4x4 model -> sensor): the object's
+        own cloud (``objects/<name>/cloud``). One compiled pass over the cloud
+        (:func:`object_localizer.crop.crop_near`; the box's circumscribed sphere first).
         """
         lo = np.min(model_points, axis=0) - margin
         hi = np.max(model_points, axis=0) + margin
         centre = pose[:3, :3] @ (0.5 * (lo + hi)) + pose[:3, 3]
-        radius = 0.5 * float(np.linalg.norm(hi - lo))
-        if float(centre[2]) <= radius:
-            return self.points[np.all(np.isfinite(self.points), axis=1)].astype(np.float64)
-        return self.cone(centre, radius)
+        return crop_near(self.points, centre, 0.5 * float(np.linalg.norm(hi - lo)), pose, lo, hi)
 
 
 @dataclass
