@@ -46,7 +46,7 @@ import time
 from typing import Any, Callable, Deque, List, Optional, Sequence, Tuple
 
 import numpy as np
-from object_localizer.crop import crop_near, crop_rays, crop_window
+from object_localizer.crop import crop_near, crop_rays, crop_window, nearest_depth_image
 from object_localizer.localization import localize, ModelTemplate, prepare_model, sample_surface
 from object_localizer.point_to_plane import icp_point_to_plane
 import open3d as o3d
@@ -387,12 +387,7 @@ def _range_image(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[
     Nearest depth per pixel of a virtual pinhole image in normalised coordinates (x/z, y/z)
     with pixel size ``pixel`` from ``lo``; NaN where nothing is observed.
     """
-    img = np.full(shape[0] * shape[1], np.inf)
-    if len(points):
-        idx, ok = _pixels(points, pixel, lo, shape)
-        np.minimum.at(img, idx[ok], points[ok, 2])
-    img[np.isinf(img)] = np.nan
-    return img
+    return nearest_depth_image(points, pixel, lo, shape)
 
 
 def _pixels(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[int, int]
@@ -424,8 +419,8 @@ def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points
 
     :param cone_points: (M, 3) scene points [m] on the rays through the object.
     """
-    from object_localizer.verification import observe_depth, PinholeCamera, \
-        render_model_depth, silhouette_edges
+    from object_localizer.verification import _zbuffer, PinholeCamera, render_model_depth, \
+        silhouette_edges
 
     R, t = pose[:3, :3], pose[:3, 3]
     centres = model.points @ R.T + t
@@ -454,9 +449,11 @@ def silhouette_edge_fraction(model: TrackingModel, pose: np.ndarray, cone_points
     holes[:, 1:-1] |= mask[:, :-2] & mask[:, 2:]
     sil[holes & ~mask] = np.nanmax(sil)
     # only the rays through the image (the others fall outside it): one compiled pass
+    # (observe_depth's z-buffer, without its finiteness pass: the crop is finite)
     window = crop_window(cone_points, lo - pixel, hi + pixel)
-    observed = observe_depth(window, camera, stride=1).depth if len(window) else \
-        np.full((height, width), np.nan)
+    cam = camera.scaled(1)
+    observed = _zbuffer(window, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, 0)
+    observed[~np.isfinite(observed)] = np.nan
     sup, cont = silhouette_edges(sil, observed, settings.edge_threshold, gap)
     if sup + cont < settings.min_edge_samples:
         return float('nan')
