@@ -320,4 +320,3 @@ def test_in_box_is_the_segment_of_the_grown_box():
         ref = segment_object_points(full, template, pose, margin)
         assert len(ref) > 100
         np.testing.assert_array_equal(ours, ref)
-
