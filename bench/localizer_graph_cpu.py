@@ -150,9 +150,13 @@ def open3d_track_icp(model, near_points, start, settings):
     return pose
 
 
-def _all_finite(self, pose, model_points, margin=0.0):
-    """Crop as the peer does for objects/<name>/cloud: the whole cloud."""
-    return self.points[np.all(np.isfinite(self.points), axis=1)].astype(np.float64)
+def _main_in_box(self, pose, model_points, margin=0.0):
+    """Cut objects/<name>/cloud as main does: the box segment of the whole cloud."""
+    from object_localizer.localization import segment_object_points
+
+    template = type('Template', (), {'points': model_points})()
+    finite = self.points[np.all(np.isfinite(self.points), axis=1)].astype(np.float64)
+    return segment_object_points(finite, template, pose, margin)
 
 
 def run_scene(scene: str, n_frames: int, skip: int, peer: bool = False) -> Dict[str, Any]:
@@ -162,13 +166,13 @@ def run_scene(scene: str, n_frames: int, skip: int, peer: bool = False) -> Dict[
     ``peer``: with main's tracking ICP and cloud crop (:func:`open3d_track_icp`).
     """
     import object_localizer.tracking as tracking
-    saved = tracking.track_icp, tracking.SceneCloud.around_box
+    saved = tracking.track_icp, tracking.SceneCloud.in_box
     if peer:
-        tracking.track_icp, tracking.SceneCloud.around_box = open3d_track_icp, _all_finite
+        tracking.track_icp, tracking.SceneCloud.in_box = open3d_track_icp, _main_in_box
     try:
         return _run_scene(scene, n_frames, skip)
     finally:
-        tracking.track_icp, tracking.SceneCloud.around_box = saved
+        tracking.track_icp, tracking.SceneCloud.in_box = saved
 
 
 def _run_scene(scene: str, n_frames: int, skip: int) -> Dict[str, Any]:

@@ -25,7 +25,6 @@ from nav_msgs.msg import Path
 import numpy as np
 from object_localizer.acquisition import prepare_acquisition_model
 from object_localizer.conversions import cloud_xyz, track_status
-from object_localizer.localization import segment_object_points
 from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
     same_shape, SceneCloud, TrackerSettings, TrackState, TrackUpdate
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
@@ -304,10 +303,8 @@ class ObjectLocalizerNode(Node):
         if result.pose is None:
             return
         if self.cloud_pubs[name].get_subscription_count() > 0:
-            margin = self.get_parameter('segment_margin').value
-            points = scene.around_box(result.pose, tracker.model.template.points, margin)
-            segment = segment_object_points(points, tracker.model.template, result.pose,
-                                            margin)
+            segment = scene.in_box(result.pose, tracker.model.template.points,
+                                   self.get_parameter('segment_margin').value)
             self.cloud_pubs[name].publish(xyz_to_pointcloud2(segment, msg.header))
         if self.track_pubs[name].get_subscription_count() > 0 and tracker.history:
             stamps, poses = zip(*tracker.history)

@@ -210,7 +210,7 @@ def _step_matrix(x):  # pragma: no cover - numba
 
 @numba.njit(cache=True)
 def _icp(S0, P, N, fine_cell, cell, reach, k, max_iterations, tolerance,
-         min_step):  # pragma: no cover - numba
+         min_step, min_residual_step):  # pragma: no cover - numba
     lo, dims, start, order = _build_grid(P, fine_cell)
     fine = (lo, dims, start, order, fine_cell)
     lo, dims, start, order = _build_grid(P, cell)
@@ -231,6 +231,7 @@ def _icp(S0, P, N, fine_cell, cell, reach, k, max_iterations, tolerance,
             break
         A = np.zeros((6, 6))
         g = np.zeros(6)
+        wsum = 0.0
         for i in range(n):
             j = idx[i]
             if j < 0:
@@ -242,6 +243,7 @@ def _icp(S0, P, N, fine_cell, cell, reach, k, max_iterations, tolerance,
                 continue
             u = 1.0 - (r / k) ** 2
             w = u * u
+            wsum += w
             J[0] = py * nz - pz * ny
             J[1] = pz * nx - px * nz
             J[2] = px * ny - py * nx
@@ -257,6 +259,14 @@ def _icp(S0, P, N, fine_cell, cell, reach, k, max_iterations, tolerance,
         x, ok = _solve6(A, -g)
         if not ok:
             break
+        # weighted RMS change of the point-to-plane residuals the step makes (x' A x / sum w):
+        # the step along the directions the correspondences observe; a slide along a symmetry
+        # (a torus turning about its axis, a cylinder about its own) changes none of them
+        q = 0.0
+        for a in range(6):
+            for b in range(6):
+                q += x[a] * A[a, b] * x[b]
+        residual_step = np.sqrt(max(q, 0.0) / wsum) if wsum > 0.0 else 0.0
         U = _step_matrix(x)
         T = U @ T
         for i in range(n):
@@ -283,7 +293,7 @@ def _icp(S0, P, N, fine_cell, cell, reach, k, max_iterations, tolerance,
         small = np.sqrt(x[0] ** 2 + x[1] ** 2 + x[2] ** 2) < min_step and \
             np.sqrt(x[3] ** 2 + x[4] ** 2 + x[5] ** 2) < min_step
         fitness, rmse = f2, r2
-        if converged or small or cycle:
+        if converged or small or cycle or residual_step < min_residual_step:
             break
     return T, iterations, fitness, rmse
 
@@ -291,7 +301,8 @@ def _icp(S0, P, N, fine_cell, cell, reach, k, max_iterations, tolerance,
 def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray,
                        reach: float, loss_scale: float, max_iterations: int = 30,
                        tolerance: float = 1e-6, min_step: float = 1e-6,
-                       cell: float = 0.0, fine_cell: float = 0.002
+                       cell: float = 0.0, fine_cell: float = 0.002,
+                       min_residual_step: float = 0.0
                        ) -> Tuple[np.ndarray, int, float, float]:
     """
     Align ``source`` (N, 3) [m] to ``target`` (M, 3) with unit ``target_normals`` (M, 3).
@@ -300,6 +311,11 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: n
     :param loss_scale: Tukey scale k [m] of the point-to-plane residual.
     :param tolerance: stop when fitness and inlier RMS [m] change by less than this.
     :param min_step: stop when the step's rotation [rad] and translation [m] are both below.
+    :param min_residual_step: stop when the step changes the point-to-plane residuals by less
+        than this [m] (weighted RMS, ``sqrt(x' A x / sum w)`` with the normal matrix A): the
+        step has converged in every direction the correspondences observe; a slide along a
+        symmetry of the target (which would otherwise run to ``max_iterations``) does not
+        count. 0: off.
     :param cell: grid cell [m] of the correspondence search (0: ``reach / 2``, at least large
         enough for a grid of <= 2 million cells).
     :param fine_cell: cell [m] of the first, local search (about the target's sample spacing;
@@ -316,5 +332,6 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: n
     cell = max(cell, extent / 125.0, 1e-6)
     fine_cell = min(max(float(fine_cell), extent / 125.0, 1e-6), cell)
     T, it, fitness, rmse = _icp(S, P, N, fine_cell, cell, float(reach), float(loss_scale),
-                                int(max_iterations), float(tolerance), float(min_step))
+                                int(max_iterations), float(tolerance), float(min_step),
+                                float(min_residual_step))
     return T, int(it), float(fitness), float(rmse)

@@ -94,3 +94,51 @@ def test_empty_inputs_give_the_identity():
                                                       np.ones((5, 3)), 0.01, 0.001)
     assert iterations == 0 and fitness == 0.0
     np.testing.assert_array_equal(T, np.eye(4))
+
+
+def _torus_front(rng, n=8000, major=0.04, minor=0.012):
+    """Half of a torus (axis z, centre at 0.5 m) facing a sensor at the origin, with normals."""
+    u = rng.uniform(0, 2 * np.pi, n)
+    v = rng.uniform(np.pi, 2 * np.pi, n)           # the half whose normals point to -z
+    ring = np.column_stack([np.cos(u), np.sin(u), np.zeros(n)])
+    N = np.cos(v)[:, None] * ring + np.sin(v)[:, None] * [0.0, 0.0, 1.0]
+    P = major * ring + minor * N + [0.0, 0.0, 0.5]
+    return P, N
+
+
+def test_residual_step_stops_a_slide_along_a_symmetry_at_the_same_fit():
+    """
+    A torus' spin about its axis changes no residual: the residual-step criterion stops.
+
+    Without it the ICP keeps turning the source about the axis (the normal matrix is nearly
+    singular there, the step is noise) until the tight tolerances stop it; with it the fit is
+    the same: the moved points' distance to the surface and their symmetric distance (ADD-S)
+    to the true points within 20 um of the full run's.
+    """
+    rng = np.random.default_rng(4)
+    P, N = _torus_front(rng)
+    truth_src = P[rng.choice(len(P), 1000)]
+    R = rotation_about_axis([0.2, 0.3, 1.0], 0.03)          # about the torus' centre
+    c = np.array([0.0, 0.0, 0.5])
+    motion = make_transform(R, c - R @ c + [0.002, -0.001, -0.0015])
+    S = (truth_src - motion[:3, 3]) @ motion[:3, :3] + rng.normal(0, 0.0003, (1000, 3))
+    results = {}
+    for criterion in (0.0, 1e-6):
+        T, iterations, _, _ = pp.icp_point_to_plane(S, P, N, 0.02, 0.0045, 60, 1e-12, 1e-12,
+                                                    min_residual_step=criterion)
+        moved = S @ T[:3, :3].T + T[:3, 3]
+        rel = moved - c
+        # distance of the moved points to the torus surface
+        surface = np.hypot(np.hypot(rel[:, 0], rel[:, 1]) - 0.04, rel[:, 2]) - 0.012
+        # the error modulo the spin: T motion^-1 must keep the centre and the axis
+        D = T @ np.linalg.inv(motion)
+        centre_error = np.linalg.norm(D[:3, :3] @ c + D[:3, 3] - c)
+        axis_error = np.arccos(np.clip(D[2, 2], -1.0, 1.0))
+        results[criterion] = (iterations, surface, centre_error, axis_error)
+    it0, surface0, centre0, axis0 = results[0.0]
+    it1, surface1, centre1, axis1 = results[1e-6]
+    assert 1 <= it1 < it0 / 4
+    assert np.sqrt(np.mean(surface1 ** 2)) < 5e-4
+    assert abs(np.median(surface1) - np.median(surface0)) < 2e-5
+    assert centre1 < 2e-4 and axis1 < 5e-3
+    assert abs(centre1 - centre0) < 3e-5 and abs(axis1 - axis0) < 5e-4

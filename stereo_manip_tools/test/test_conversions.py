@@ -190,6 +190,31 @@ def test_pointcloud_big_endian_and_row_padding_are_honoured():
     assert np.allclose(read_pointcloud2(msg).points, P, atol=1e-6)
 
 
+def test_pointcloud_word_aligned_layout_with_offset_padding_and_invalid_rows():
+    """The strided float32 fast path: x at byte 4 of 16, padded rows, NaN/huge rows kept."""
+    P = np.array([[0.1, -0.2, 0.5], [np.nan, 0.4, 0.6], [1.0, 2.0, 3.0], [4.0, 2e4, 6.0],
+                  [0.7, 0.8, 0.9], [-1.0, -2.0, -3.0]], dtype=np.float32)
+    rows = np.zeros((2, 56), dtype=np.uint8)           # 2 rows of 3 points, 8 bytes padding
+    rec = np.zeros((6, 4), dtype='<f4')
+    rec[:, 0] = 7.0                                      # an intensity before x, y, z
+    rec[:, 1:] = P
+    rows[:, :48] = rec.view(np.uint8).reshape(2, 48)
+    msg = PointCloud2(height=2, width=3, point_step=16, row_step=56, is_bigendian=False,
+                      fields=_xyz_fields(offsets=(4, 8, 12)), data=rows.tobytes())
+    kept = read_pointcloud2(msg, keep_rows=True, dtype=np.float32)
+    assert kept.points.dtype == np.float32 and kept.points.shape == (6, 3)
+    assert (kept.nonfinite, kept.out_of_bounds) == (1, 1)
+    good = [0, 2, 4, 5]
+    assert np.array_equal(kept.points[good], P[good])
+    assert np.all(np.isnan(kept.points[[1, 3]]))
+    dropped = read_pointcloud2(msg)
+    assert dropped.points.dtype == np.float64
+    assert np.allclose(dropped.points, P[good].astype(np.float64))
+    # every row valid: the same values, without NaN rows, in both modes
+    clean = read_pointcloud2(_cloud(P[good]), keep_rows=True)
+    assert np.allclose(clean.points, P[good]) and (clean.nonfinite, clean.out_of_bounds) == (0, 0)
+
+
 def test_pointcloud_drops_nonfinite_and_huge_coordinates_with_counts():
     msg = _cloud([[0.1, 0.2, 0.5], [np.nan, 0, 1], [1e30, 0, 1], [0, np.inf, 1], [0, 0, -2e4]])
     reading = read_pointcloud2(msg)
