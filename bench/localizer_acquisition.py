@@ -231,7 +231,9 @@ def main() -> None:
         for method in args.methods:
             if i % strides[method]:
                 continue
+            c0 = time.process_time()
             pose, dt, score = run_method(method, models[name], pts, camera, i)
+            cpu = time.process_time() - c0
             e_t, e_r = symmetric_pose_error(pose, T, symmetries[name], sym_sets[name])
             strict = bool(e_t <= TOL_T and e_r <= TOL_R)
             for twin in TWINS.get(name, ()):
@@ -245,7 +247,8 @@ def main() -> None:
                 rec['observability'] = observability(models[name], pts, camera, T, pose)
             rec[method] = {'t_err_m': e_t, 'r_err_deg': float(np.degrees(e_r)),
                            'add_s_m': add_s(pose, T, models[name].template.points),
-                           'time_s': dt, 'score': score, 'success_strict': strict,
+                           'time_s': dt, 'cpu_s': cpu, 'load_1min': os.getloadavg()[0],
+                           'score': score, 'success_strict': strict,
                            'success': bool(e_t <= TOL_T and e_r <= TOL_R)}
         records.append(rec)
         print(i, scene_name, frame, name, {m: (round(rec[m]['t_err_m'] * 1000, 2),
@@ -263,6 +266,12 @@ def main() -> None:
             'rotation_error_deg': stats([r['r_err_deg'] for r in rs]),
             'add_s_m': stats([r['add_s_m'] for r in rs]),
             'time_s': stats([r['time_s'] for r in rs]),
+            # process CPU time (all threads: the numba voting runs on both cores) and the
+            # 1-min load average at each trial: the machine is shared, wall times are contended
+            'cpu_time_s': stats([r['cpu_s'] for r in rs]) if all('cpu_s' in r for r in rs)
+            else None,
+            'load_1min': stats([r['load_1min'] for r in rs]) if all('load_1min' in r for r in rs)
+            else None,
             'failures': [{k: r[k] for k in ('scene', 'seed', 'frame', 'object')}
                          | {'t_err_m': r[method]['t_err_m'], 'r_err_deg': r[method]['r_err_deg']}
                          | ({'observability': r['observability']}
