@@ -682,7 +682,8 @@ def make_acquirer(method: str, max_candidates: int = 6,
 
     def acquire(model: TrackingModel, points: np.ndarray, seed: int) -> list:
         if model.acquisition is None:
-            model.acquisition = acquisition.prepare_acquisition_model(model.mesh)
+            model.acquisition = acquisition.prepare_acquisition_model(model.mesh,
+                                                                      check_model=model)
         P = np.asarray(points, dtype=float)
         hyps = acquisition.acquire_object(model.acquisition, P[np.all(np.isfinite(P), axis=1)],
                                           method=method, seed=seed,
