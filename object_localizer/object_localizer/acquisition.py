@@ -31,7 +31,12 @@ Stages (each hypothesis keeps the figures of every stage, see :class:`Hypothesis
    the camera sees (not hidden behind observed surfaces); the best ``max_slide`` are then
    searched along the model's principal axes by the visibility score (ICP cannot slide a long
    prism whose ends are far off) and refined again. Final verification at the stereo depth
-   tolerance (``fine_tolerance``); the list is sorted by that score.
+   tolerance (``fine_tolerance``, ``Hypothesis.score``).
+4. **Ranking** -- the refined hypotheses are sorted by the tracker's per-sample check
+   (``tracking.check_pose`` with the acquisition thresholds, ``Hypothesis.check``): occluded
+   samples do not count against a pose, normal distances, both stereo viewpoints. The pixel
+   score of stage 2 on its coarse image let a fully visible wrong pose outrank a right pose
+   half hidden by a contact partner (``final_check=False`` keeps the old order by ``score``).
 
 A caller decides acceptance from ``Hypothesis.score`` (and ``inlier_fraction``,
 ``visibility``): on the synthetic stereo scenes right poses score about 0.45-0.95, poses
@@ -57,7 +62,7 @@ from object_localizer.localization import (fpfh_features, match_features_ransac,
                                            remove_dominant_plane)
 from object_localizer.ppf import build_ppf_model, cluster_poses, ppf_vote, PPFModel
 from object_localizer.tracking import (check_pose, PoseQuality, prepare_tracking_model,
-                                       SceneCloud, TrackerSettings, TrackingModel)
+                                       SceneCloud, track_icp, TrackerSettings, TrackingModel)
 from object_localizer.verification import (as_camera, CameraLike, observe_depth, ObservedDepth,
                                            sample_model_surface, score_pose_visibility,
                                            SurfaceSamples, unoccluded_mask, VisibilityScore)
@@ -305,7 +310,7 @@ def _rough_fpfh(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
 
 
 def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
-            max_points: int = 1000, wide: bool = True,
+            max_points: int = 2000, wide: bool = True,
             guard_tolerance: Optional[float] = None) -> Tuple[np.ndarray, float, float]:
     """
     Refine a pose by point-to-plane ICP with an annealed Tukey M-estimator.
@@ -360,7 +365,7 @@ def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
         src.normals = o3d.utility.Vector3dVector(t.normals[keep])
         res = reg.registration_icp(src, local, reach, pose,
                                    reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=k)),
-                                   reg.ICPConvergenceCriteria(1e-6, 1e-6, iters))
+                                   reg.ICPConvergenceCriteria(1e-7, 1e-7, iters))
         pose = np.asarray(res.transformation).copy()
         guard(pose)
     if tried and max(v for v, _ in tried[:-1]) > tried[-1][0] + 0.02:
@@ -506,9 +511,17 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         rays = scene.rays()
         for h in refined:
             c = h.pose[:3, :3] @ model.check.centre + h.pose[:3, 3]
-            h.check = check_pose(model.check, h.pose, rays.cone(c, model.check.radius),
-                                 settings, acquisition=True)
-        refined.sort(key=lambda h: (h.check.quality, h.score), reverse=True)
+            cone = rays.cone(c, model.check.radius)
+            h.check = check_pose(model.check, h.pose, cone, settings, acquisition=True)
+            # the tracker's ICP (scene samples onto the model's visible samples, exact model
+            # normals) from the pose: kept when the check does not get worse
+            polished = track_icp(model.check, cone, h.pose, settings)
+            q = check_pose(model.check, polished, cone, settings, acquisition=True)
+            if q.quality >= h.check.quality:
+                vis = score_pose_visibility(model.surface, polished, observed,
+                                            inlier_threshold=fine_tolerance)
+                h.pose, h.check, h.visibility, h.score = polished, q, vis, vis.combined
+        refined.sort(key=lambda h: (h.check.quality * h.score, h.score), reverse=True)
     for h in rest:
         h.score = 0.0          # unrefined: not a usable pose, kept for diagnosis
     return refined + rest
