@@ -134,10 +134,8 @@ def test_acquire_object_on_sampled_scene(meshes, symmetries, method):
     assert hyps and hyps[0].refined and hyps[0].method == method
     e_t, e_r = symmetric_pose_error(hyps[0].pose, T, symmetries['link_arm'])
     assert e_t < 0.002 and e_r < np.radians(2.0), (e_t, np.degrees(e_r))
-    assert hyps[0].score > 0.5 and hyps[0].check is not None and hyps[0].check.passed
-    # refined hypotheses are ranked by the tracker's per-sample check x the pixel score
-    assert all(a.check.quality * a.score >= b.check.quality * b.score
-               for a, b in zip(hyps, hyps[1:]) if b.refined)
+    assert hyps[0].score > 0.5
+    assert all(a.score >= b.score for a, b in zip(hyps, hyps[1:]) if b.refined)
 
 
 @pytest.fixture(scope='module')
@@ -215,7 +213,9 @@ def test_partly_hidden_object_outranks_a_fully_visible_wrong_pose(
     sym = find_symmetries(samples.points, samples.spacing)
     hyps = acquire_object(prepare_acquisition_model(mesh),
                           prepare_acquisition_scene(pts, camera=cam), seed=acquisition_seed,
-                          time_budget_s=float('inf'))
+                          time_budget_s=float('inf'), final_check=True)
+    assert all(a.check.quality * a.score >= b.check.quality * b.score
+               for a, b in zip(hyps, hyps[1:]) if b.refined)
     e_t, e_r = symmetric_pose_error(hyps[0].pose, np.asarray(truth['poses'][name]), sym)
     assert e_t < 0.002 and e_r < np.radians(2.0), (e_t, np.degrees(e_r))
 
