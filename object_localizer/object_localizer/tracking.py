@@ -215,9 +215,15 @@ class TrackingModel:
 
 
 def prepare_tracking_model(mesh: PolygonMesh, voxel_size: float = 0.003,
-                           tracking_voxel: float = 0.002, seed: int = 0) -> TrackingModel:
-    """Acquisition template at ``voxel_size`` [m] and dense samples at ``tracking_voxel`` [m]."""
-    template = prepare_model(mesh, voxel_size, seed=seed)
+                           tracking_voxel: float = 0.002, seed: int = 0,
+                           template: Optional[ModelTemplate] = None) -> TrackingModel:
+    """
+    Acquisition template at ``voxel_size`` [m] and dense samples at ``tracking_voxel`` [m].
+
+    :param template: an existing template of the same mesh (``prepare_model``) to reuse.
+    """
+    if template is None:
+        template = prepare_model(mesh, voxel_size, seed=seed)
     dense = sample_surface(mesh, 40000, seed).voxel_down_sample(tracking_voxel)
     P = np.asarray(dense.points).copy()
     N = np.asarray(dense.normals).copy()
@@ -686,7 +692,8 @@ def make_acquirer(method: str, max_candidates: int = 6,
 
     def acquire(model: TrackingModel, points: np.ndarray, seed: int) -> list:
         if model.acquisition is None:
-            model.acquisition = acquisition.prepare_acquisition_model(model.mesh)
+            model.acquisition = acquisition.prepare_acquisition_model(model.mesh,
+                                                                      check_model=model)
         P = np.asarray(points, dtype=float)
         hyps = acquisition.acquire_object(model.acquisition, P[np.all(np.isfinite(P), axis=1)],
                                           method=method, seed=seed,
