@@ -127,13 +127,31 @@ def run(scene, mode, rate, seconds, frames, log):
            'localizer_log_tail': tails.get('object_localizer_node', '')}
     for n in names:
         pts = prepare_model(load_obj(find_model(n))).points
-        errs, unscored = [], 0
+        errs, unscored, wrong = [], 0, []
+        status_at = {stamp_to_ns(m.header.stamp): m for m, _ in statuses[n]}
+        first_ns = min(truth[n]) if truth[n] else 0
         for m in poses[n]:
-            T = truth[n].get(stamp_to_ns(m.header.stamp))
+            ns = stamp_to_ns(m.header.stamp)
+            T = truth[n].get(ns)
             if T is None:
                 unscored += 1
                 continue
             errs.append(add_s(pose_to_matrix(m.pose), T, pts))
+            if errs[-1] > 0.005:
+                # every wrong pose with the status of its cloud, so its cause can be read here
+                st = status_at.get(ns)
+                P = pose_to_matrix(m.pose)
+                wrong.append({
+                    'stamp_s_after_first_truth': (ns - first_ns) * 1e-9,
+                    'add_s_mm': errs[-1] * 1e3,
+                    'translation_error_mm': float(np.linalg.norm(P[:3, 3] - T[:3, 3]) * 1e3),
+                    'truth_xyz_m': T[:3, 3].tolist(), 'published_xyz_m': P[:3, 3].tolist(),
+                    'status': None if st is None else {
+                        'state': int(st.state), 'quality': float(st.quality),
+                        'inlier_fraction': float(st.inlier_fraction),
+                        'visible_residual_m': float(st.visible_residual),
+                        'prediction_error_m': float(st.prediction_error),
+                        'reason': st.reason}})
         # losses: LOST statuses, or a re-acquisition whose reason says the track was lost
         # Losses: a LOST status, or a re-acquisition in the cloud where the track was lost.
         # Recovery CPU: localizer CPU from the status before the loss to the next verified pose
@@ -161,7 +179,7 @@ def run(scene, mode, rate, seconds, frames, log):
             'add_s_mm': {'median': float(np.nanmedian(e) * 1e3),
                          'p95': float(np.nanpercentile(e, 95) * 1e3),
                          'max': float(np.nanmax(e) * 1e3)},
-            'published_over_5mm': int(np.sum(e > 0.005)),
+            'published_over_5mm': int(np.sum(e > 0.005)), 'wrong_poses': wrong,
             'losses': len(losses), 'recoveries': len(recoveries),
             'unrecovered_at_end': int(lost_at is not None),
             'recovery_cpu_s': [float(x) for x in recoveries],
