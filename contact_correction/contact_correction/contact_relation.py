@@ -36,6 +36,7 @@ __all__ = [
     'ContactGeometry',
     'detect_contact_relation',
     'evaluate_contacts',
+    'ContactEvaluator',
     'penetration_depth',
     'off_element_distance',
     'relative_pose',
@@ -173,40 +174,76 @@ def evaluate_contacts(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
     :raises ValueError: on a pair kind other than vertex-face, face-vertex, edge-edge, or an
         edge-edge pair whose edges are parallel at this pose.
     """
-    K = len(pairs)
-    d = np.zeros(K)
-    P = np.zeros((K, 3))
-    N = np.zeros((K, 3))
-    R, t = T_rel[:3, :3], T_rel[:3, 3]
-    vf, vi, fi, fv, fi2, wi, ee, mi, ei, sg = _split_pairs(tuple(pairs))
-    if len(vf):
-        x = moving.vertices[vi] @ R.T + t
-        n = fixed.face_normals[fi]
-        d[vf] = (n * x).sum(1) - fixed.face_offsets[fi]
-        P[vf], N[vf] = x, n
-    if len(fv):
-        w = fixed.vertices[wi]
-        nm = moving.face_normals[fi2] @ R.T
-        off = moving.face_offsets[fi2] + nm @ t          # moving face plane in the fixed frame
-        d[fv] = (nm * w).sum(1) - off
-        P[fv], N[fv] = w, -nm
-    if len(ee):
-        a = moving.vertices[moving.edge_vertices[mi, 0]] @ R.T + t
-        em = moving.edge_directions[mi] @ R.T
-        b = fixed.vertices[fixed.edge_vertices[ei, 0]]
-        ef = fixed.edge_directions[ei]
-        c = cross3(em, ef)
-        s = np.linalg.norm(c, axis=1)
-        if np.any(s < 1e-9):
-            bad = pairs[ee[int(np.argmin(s))]]
-            raise ValueError(f'edge-edge pair ({bad}) has parallel edges at this pose')
-        n = sg[:, None] * c / s[:, None]
-        w0 = a - b
-        d[ee] = (n * w0).sum(1)
-        B = (em * ef).sum(1)
-        u = ((ef * w0).sum(1) - B * (em * w0).sum(1)) / (1.0 - B * B)
-        P[ee], N[ee] = b + u[:, None] * ef, n
-    return ContactGeometry(d, P, N)
+    return ContactEvaluator(moving, fixed, pairs)(T_rel)
+
+
+class ContactEvaluator:
+    """
+    :func:`evaluate_contacts` for one relation at many poses (the model data gathered once).
+
+    ``ContactEvaluator(moving, fixed, pairs)(T_rel)`` equals
+    ``evaluate_contacts(moving, fixed, T_rel, pairs)`` (the same arithmetic); an iterative
+    solver evaluating one relation at each iterate saves the per-call splitting and gathering.
+
+    :raises ValueError: on a pair kind other than vertex-face, face-vertex, edge-edge.
+    """
+
+    def __init__(self, moving: Polyhedron, fixed: Polyhedron,
+                 pairs: Sequence[ContactPair]) -> None:
+        """Split ``pairs`` by kind and gather their model data (model frames)."""
+        self.pairs = tuple(pairs)
+        vf, vi, fi, fv, fi2, wi, ee, mi, ei, sg = _split_pairs(self.pairs)
+        self.vf, self.fv, self.ee, self.sg = vf, fv, ee, sg
+        if len(vf):
+            self.vf_x = moving.vertices[vi]
+            self.vf_n = fixed.face_normals[fi]
+            self.vf_off = fixed.face_offsets[fi]
+        if len(fv):
+            self.fv_w = fixed.vertices[wi]
+            self.fv_n = moving.face_normals[fi2]
+            self.fv_off = moving.face_offsets[fi2]
+        if len(ee):
+            self.ee_a = moving.vertices[moving.edge_vertices[mi, 0]]
+            self.ee_em = moving.edge_directions[mi]
+            self.ee_b = fixed.vertices[fixed.edge_vertices[ei, 0]]
+            self.ee_ef = fixed.edge_directions[ei]
+
+    def __call__(self, T_rel: np.ndarray) -> ContactGeometry:
+        """Contact geometry at ``T_rel`` (4x4, moving object in the fixed frame)."""
+        K = len(self.pairs)
+        d = np.zeros(K)
+        P = np.zeros((K, 3))
+        N = np.zeros((K, 3))
+        R, t = T_rel[:3, :3], T_rel[:3, 3]
+        vf, fv, ee = self.vf, self.fv, self.ee
+        if len(vf):
+            x = self.vf_x @ R.T + t
+            n = self.vf_n
+            d[vf] = (n * x).sum(1) - self.vf_off
+            P[vf], N[vf] = x, n
+        if len(fv):
+            w = self.fv_w
+            nm = self.fv_n @ R.T
+            off = self.fv_off + nm @ t          # moving face plane in the fixed frame
+            d[fv] = (nm * w).sum(1) - off
+            P[fv], N[fv] = w, -nm
+        if len(ee):
+            a = self.ee_a @ R.T + t
+            em = self.ee_em @ R.T
+            b = self.ee_b
+            ef = self.ee_ef
+            c = cross3(em, ef)
+            s = np.linalg.norm(c, axis=1)
+            if np.any(s < 1e-9):
+                bad = self.pairs[ee[int(np.argmin(s))]]
+                raise ValueError(f'edge-edge pair ({bad}) has parallel edges at this pose')
+            n = self.sg[:, None] * c / s[:, None]
+            w0 = a - b
+            d[ee] = (n * w0).sum(1)
+            B = (em * ef).sum(1)
+            u = ((ef * w0).sum(1) - B * (em * w0).sum(1)) / (1.0 - B * B)
+            P[ee], N[ee] = b + u[:, None] * ef, n
+        return ContactGeometry(d, P, N)
 
 
 def off_element_distance(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
