@@ -395,8 +395,26 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
         sel = cf == f
         ok[sel] = fpoly.face_distance(int(f), Q[sel]) <= margin
     out = []
-    for k in np.flatnonzero(ok):
-        v, f = int(idx[ci[k]]), int(cf[k])
+    ks = np.flatnonzero(ok)
+    vs, fs = idx[ci[ks]], cf[ks]
+    # vectorised tests (the per-candidate ones below, for all candidates at once): the lowest
+    # edge direction of each vertex along the face normal, and the lowest normal of the
+    # vertex's faces along it; a candidate whose values lie clearly (by 1e-9) on one side of
+    # the thresholds is decided here, the others take the exact per-candidate tests
+    nf_all = fpoly.face_normals[fs]
+    lo_e = _vertex_min(vpoly.vertex_edge_table(), vs, R, nf_all)
+    lo_f = _vertex_min(vpoly.vertex_face_table(), vs, R, nf_all)
+    band = 1e-9
+    clear = lo_e > -sin_tol + band                      # no edge below the plane: contact
+    below = lo_e < -sin_tol - band                      # an edge below the plane ...
+    apart = below & (lo_f > -cos_tol + band)            # ... and no face against: not one
+    for j in range(len(ks)):
+        v, f = int(vs[j]), int(fs[j])
+        if clear[j]:
+            out.append((v, f))
+            continue
+        if apart[j]:
+            continue
         dirs = vpoly.vertex_edge_dirs[v] @ R.T
         nf = fpoly.face_normals[f]
         if np.any(dirs @ nf < -sin_tol):
@@ -408,11 +426,30 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
             # level with a flush, coplanar face beside a slot it slides in (same normals).
             against = np.any((vpoly.face_normals[vpoly.vertex_faces[v]] @ R.T) @ nf
                              < -cos_tol)
-            if not against or _cone_enters(V[ci[k]], dirs, vpoly.vertex_edge_lengths[v],
+            if not against or _cone_enters(V[ci[ks[j]]], dirs, vpoly.vertex_edge_lengths[v],
                                            fpoly, pen, sin_tol):
                 continue
         out.append((v, f))
     return out
+
+
+def _vertex_min(table: Tuple[np.ndarray, np.ndarray, np.ndarray], vs: np.ndarray,
+                R: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """
+    Lowest component along ``normals[j]`` of vertex ``vs[j]``'s rows rotated by ``R``.
+
+    Per candidate ``j``: min over the vertex's rows r (a flattened table) of
+    ``(R r) . normals[j]``; nan when a vertex has no rows.
+    """
+    rows_all, start, count = table
+    out = np.full(len(vs), np.nan)
+    cnt = count[vs]
+    if len(vs) == 0 or not np.all(cnt > 0):
+        return out
+    seg = np.cumsum(cnt) - cnt
+    rows = np.repeat(start[vs], cnt) + (np.arange(int(cnt.sum())) - np.repeat(seg, cnt))
+    vals = ((rows_all[rows] @ R.T) * np.repeat(normals, cnt, axis=0)).sum(1)
+    return np.minimum.reduceat(vals, seg)
 
 
 def _cone_enters(apex: np.ndarray, dirs: np.ndarray, lengths: np.ndarray, other: Polyhedron,
