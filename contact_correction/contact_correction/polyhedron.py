@@ -339,7 +339,7 @@ class Polyhedron:
 
     def vertex_edge_table(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """
-        ``vertex_edge_dirs`` flattened (cached): directions (M, 3), start (V,), count (V,).
+        Return ``vertex_edge_dirs`` flattened (cached): directions (M, 3), start, count (V,).
 
         Vertex ``v``'s edge directions are rows ``start[v]:start[v] + count[v]`` (count 0 for a
         vertex without edges).
@@ -350,7 +350,7 @@ class Polyhedron:
 
     def vertex_face_table(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """
-        Normals of ``vertex_faces`` flattened (cached): normals (M, 3), start (V,), count (V,).
+        Return the normals of ``vertex_faces`` flattened (cached): (M, 3), start, count (V,).
 
         Vertex ``v``'s incident face normals are rows ``start[v]:start[v] + count[v]``.
         """

@@ -213,6 +213,8 @@ class FrameCandidates:
 #: the relation's correction lifted the peg by the insertion depth)
 EXIT_SLACK = 0.5
 
+_EYE6 = np.eye(6)
+
 #: chi2 by which a relation with fewer constraints must explain a frame better than the chosen
 #: one to make it ambiguous (the data favour it, only the priors do not)
 AMBIGUITY_FIT = 1.0
@@ -409,23 +411,47 @@ class RelationRecognizer:
         tol = EXIT_SLACK * self.options.sigma_translation
         R, t = T_rel[:3, :3], T_rel[:3, 3]
         Ri, ti = R.T, -R.T @ t
+        # the vertex of each vertex-face / face-vertex pair in the other solid's frame (the same
+        # per-pair arithmetic as the single-pair form), then the distance queries batched per
+        # solid and face (each point's query is independent of the others in the batch)
+        ks: List[int] = []
+        xs: List[np.ndarray] = []
+        on_fixed: List[bool] = []
+        faces: List[int] = []
         for k, p in enumerate(pool):
             if p.moving_type == VERTEX:
-                x, solid, f = R @ self.moving.vertices[p.moving_index] + t, self.fixed, \
-                    p.fixed_index
+                xs.append(R @ self.moving.vertices[p.moving_index] + t)
+                on_fixed.append(True)
+                faces.append(p.fixed_index)
             elif p.fixed_type == VERTEX:
-                x, solid, f = Ri @ self.fixed.vertices[p.fixed_index] + ti, self.moving, \
-                    p.moving_index
+                xs.append(Ri @ self.fixed.vertices[p.fixed_index] + ti)
+                on_fixed.append(False)
+                faces.append(p.moving_index)
             else:
                 continue
-            d = distances[k]
-            to_face = float(solid.face_distance(f, x[None])[0])
-            if d >= 0:
-                out[k] = to_face <= d + tol
-            elif solid.contains(x[None])[0] > 0.5:
-                out[k] = to_face <= float(solid.distance_to_surface(x[None])[0]) + tol
-            else:
-                out[k] = False
+            ks.append(k)
+        if not ks:
+            return out
+        X = np.array(xs)
+        kk = np.array(ks)
+        fx = np.array(faces)
+        sf = np.array(on_fixed)
+        d = distances[kk]
+        to_face = np.empty(len(kk))
+        inside = np.zeros(len(kk), dtype=bool)
+        surf = np.zeros(len(kk))
+        for solid, sel_solid in ((self.fixed, sf), (self.moving, ~sf)):
+            for f in np.unique(fx[sel_solid]):
+                sel = sel_solid & (fx == f)
+                to_face[sel] = solid.face_distance(int(f), X[sel])
+            neg = sel_solid & (d < 0)
+            if np.any(neg):
+                ins = solid.contains(X[neg]) > 0.5
+                inside[np.flatnonzero(neg)[ins]] = True
+            sel = sel_solid & inside
+            if np.any(sel):
+                surf[sel] = solid.distance_to_surface(X[sel])
+        out[kk] = np.where(d >= 0, to_face <= d + tol, inside & (to_face <= surf + tol))
         return out
 
     def last_guard(self) -> np.ndarray:
@@ -517,21 +543,26 @@ class RelationRecognizer:
             b += gb
             dd += gdd
             Nc += gNc
-        w = np.linalg.eigvalsh(Nc)
-        rank = int(np.count_nonzero(w > 1e-4 * max(w[-1], 1e-300))) if state else 0
+        if state:
+            w = np.linalg.eigvalsh(Nc)
+            rank = int(np.count_nonzero(w > 1e-4 * max(w[-1], 1e-300)))
+        else:
+            rank = 0
         active = mask.copy()
         pushed = 0
         A, d = self._A, self._d
+        s2I = s2 * _EYE6
+        lim = -3.0 * self.options.sigma_model
         for _ in range(4):
-            if not np.any(active):
+            if not active.any():
                 chi2, delta = 0.0, np.zeros(6)
             else:
-                y = np.linalg.solve(N + s2 * np.eye(6), b)
+                y = np.linalg.solve(N + s2I, b)
                 chi2 = float(max(dd - b @ y, 0.0) / s2)
                 delta = -y
             r = d + A @ delta
-            new = (~active) & self._guard & (r < -3.0 * self.options.sigma_model)
-            if not np.any(new):
+            new = (~active) & self._guard & (r < lim)
+            if not new.any():
                 break
             idx = np.flatnonzero(new)
             active[idx] = True
