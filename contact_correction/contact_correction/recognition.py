@@ -411,47 +411,23 @@ class RelationRecognizer:
         tol = EXIT_SLACK * self.options.sigma_translation
         R, t = T_rel[:3, :3], T_rel[:3, 3]
         Ri, ti = R.T, -R.T @ t
-        # the vertex of each vertex-face / face-vertex pair in the other solid's frame (the same
-        # per-pair arithmetic as the single-pair form), then the distance queries batched per
-        # solid and face (each point's query is independent of the others in the batch)
-        ks: List[int] = []
-        xs: List[np.ndarray] = []
-        on_fixed: List[bool] = []
-        faces: List[int] = []
         for k, p in enumerate(pool):
             if p.moving_type == VERTEX:
-                xs.append(R @ self.moving.vertices[p.moving_index] + t)
-                on_fixed.append(True)
-                faces.append(p.fixed_index)
+                x, solid, f = R @ self.moving.vertices[p.moving_index] + t, self.fixed, \
+                    p.fixed_index
             elif p.fixed_type == VERTEX:
-                xs.append(Ri @ self.fixed.vertices[p.fixed_index] + ti)
-                on_fixed.append(False)
-                faces.append(p.moving_index)
+                x, solid, f = Ri @ self.fixed.vertices[p.fixed_index] + ti, self.moving, \
+                    p.moving_index
             else:
                 continue
-            ks.append(k)
-        if not ks:
-            return out
-        X = np.array(xs)
-        kk = np.array(ks)
-        fx = np.array(faces)
-        sf = np.array(on_fixed)
-        d = distances[kk]
-        to_face = np.empty(len(kk))
-        inside = np.zeros(len(kk), dtype=bool)
-        surf = np.zeros(len(kk))
-        for solid, sel_solid in ((self.fixed, sf), (self.moving, ~sf)):
-            for f in np.unique(fx[sel_solid]):
-                sel = sel_solid & (fx == f)
-                to_face[sel] = solid.face_distance(int(f), X[sel])
-            neg = sel_solid & (d < 0)
-            if np.any(neg):
-                ins = solid.contains(X[neg]) > 0.5
-                inside[np.flatnonzero(neg)[ins]] = True
-            sel = sel_solid & inside
-            if np.any(sel):
-                surf[sel] = solid.distance_to_surface(X[sel])
-        out[kk] = np.where(d >= 0, to_face <= d + tol, inside & (to_face <= surf + tol))
+            d = distances[k]
+            to_face = float(solid.face_distance(f, x[None])[0])
+            if d >= 0:
+                out[k] = to_face <= d + tol
+            elif solid.contains(x[None])[0] > 0.5:
+                out[k] = to_face <= float(solid.distance_to_surface(x[None])[0]) + tol
+            else:
+                out[k] = False
         return out
 
     def last_guard(self) -> np.ndarray:
