@@ -36,6 +36,7 @@ __all__ = [
     'ContactGeometry',
     'detect_contact_relation',
     'evaluate_contacts',
+    'ContactEvaluator',
     'penetration_depth',
     'off_element_distance',
     'relative_pose',
@@ -173,40 +174,76 @@ def evaluate_contacts(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
     :raises ValueError: on a pair kind other than vertex-face, face-vertex, edge-edge, or an
         edge-edge pair whose edges are parallel at this pose.
     """
-    K = len(pairs)
-    d = np.zeros(K)
-    P = np.zeros((K, 3))
-    N = np.zeros((K, 3))
-    R, t = T_rel[:3, :3], T_rel[:3, 3]
-    vf, vi, fi, fv, fi2, wi, ee, mi, ei, sg = _split_pairs(tuple(pairs))
-    if len(vf):
-        x = moving.vertices[vi] @ R.T + t
-        n = fixed.face_normals[fi]
-        d[vf] = (n * x).sum(1) - fixed.face_offsets[fi]
-        P[vf], N[vf] = x, n
-    if len(fv):
-        w = fixed.vertices[wi]
-        nm = moving.face_normals[fi2] @ R.T
-        off = moving.face_offsets[fi2] + nm @ t          # moving face plane in the fixed frame
-        d[fv] = (nm * w).sum(1) - off
-        P[fv], N[fv] = w, -nm
-    if len(ee):
-        a = moving.vertices[moving.edge_vertices[mi, 0]] @ R.T + t
-        em = moving.edge_directions[mi] @ R.T
-        b = fixed.vertices[fixed.edge_vertices[ei, 0]]
-        ef = fixed.edge_directions[ei]
-        c = cross3(em, ef)
-        s = np.linalg.norm(c, axis=1)
-        if np.any(s < 1e-9):
-            bad = pairs[ee[int(np.argmin(s))]]
-            raise ValueError(f'edge-edge pair ({bad}) has parallel edges at this pose')
-        n = sg[:, None] * c / s[:, None]
-        w0 = a - b
-        d[ee] = (n * w0).sum(1)
-        B = (em * ef).sum(1)
-        u = ((ef * w0).sum(1) - B * (em * w0).sum(1)) / (1.0 - B * B)
-        P[ee], N[ee] = b + u[:, None] * ef, n
-    return ContactGeometry(d, P, N)
+    return ContactEvaluator(moving, fixed, pairs)(T_rel)
+
+
+class ContactEvaluator:
+    """
+    :func:`evaluate_contacts` for one relation at many poses (the model data gathered once).
+
+    ``ContactEvaluator(moving, fixed, pairs)(T_rel)`` equals
+    ``evaluate_contacts(moving, fixed, T_rel, pairs)`` (the same arithmetic); an iterative
+    solver evaluating one relation at each iterate saves the per-call splitting and gathering.
+
+    :raises ValueError: on a pair kind other than vertex-face, face-vertex, edge-edge.
+    """
+
+    def __init__(self, moving: Polyhedron, fixed: Polyhedron,
+                 pairs: Sequence[ContactPair]) -> None:
+        """Split ``pairs`` by kind and gather their model data (model frames)."""
+        self.pairs = tuple(pairs)
+        vf, vi, fi, fv, fi2, wi, ee, mi, ei, sg = _split_pairs(self.pairs)
+        self.vf, self.fv, self.ee, self.sg = vf, fv, ee, sg
+        if len(vf):
+            self.vf_x = moving.vertices[vi]
+            self.vf_n = fixed.face_normals[fi]
+            self.vf_off = fixed.face_offsets[fi]
+        if len(fv):
+            self.fv_w = fixed.vertices[wi]
+            self.fv_n = moving.face_normals[fi2]
+            self.fv_off = moving.face_offsets[fi2]
+        if len(ee):
+            self.ee_a = moving.vertices[moving.edge_vertices[mi, 0]]
+            self.ee_em = moving.edge_directions[mi]
+            self.ee_b = fixed.vertices[fixed.edge_vertices[ei, 0]]
+            self.ee_ef = fixed.edge_directions[ei]
+
+    def __call__(self, T_rel: np.ndarray) -> ContactGeometry:
+        """Contact geometry at ``T_rel`` (4x4, moving object in the fixed frame)."""
+        K = len(self.pairs)
+        d = np.zeros(K)
+        P = np.zeros((K, 3))
+        N = np.zeros((K, 3))
+        R, t = T_rel[:3, :3], T_rel[:3, 3]
+        vf, fv, ee = self.vf, self.fv, self.ee
+        if len(vf):
+            x = self.vf_x @ R.T + t
+            n = self.vf_n
+            d[vf] = (n * x).sum(1) - self.vf_off
+            P[vf], N[vf] = x, n
+        if len(fv):
+            w = self.fv_w
+            nm = self.fv_n @ R.T
+            off = self.fv_off + nm @ t          # moving face plane in the fixed frame
+            d[fv] = (nm * w).sum(1) - off
+            P[fv], N[fv] = w, -nm
+        if len(ee):
+            a = self.ee_a @ R.T + t
+            em = self.ee_em @ R.T
+            b = self.ee_b
+            ef = self.ee_ef
+            c = cross3(em, ef)
+            s = np.linalg.norm(c, axis=1)
+            if np.any(s < 1e-9):
+                bad = self.pairs[ee[int(np.argmin(s))]]
+                raise ValueError(f'edge-edge pair ({bad}) has parallel edges at this pose')
+            n = self.sg[:, None] * c / s[:, None]
+            w0 = a - b
+            d[ee] = (n * w0).sum(1)
+            B = (em * ef).sum(1)
+            u = ((ef * w0).sum(1) - B * (em * w0).sum(1)) / (1.0 - B * B)
+            P[ee], N[ee] = b + u[:, None] * ef, n
+        return ContactGeometry(d, P, N)
 
 
 def off_element_distance(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
@@ -358,8 +395,26 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
         sel = cf == f
         ok[sel] = fpoly.face_distance(int(f), Q[sel]) <= margin
     out = []
-    for k in np.flatnonzero(ok):
-        v, f = int(idx[ci[k]]), int(cf[k])
+    ks = np.flatnonzero(ok)
+    vs, fs = idx[ci[ks]], cf[ks]
+    # vectorised tests (the per-candidate ones below, for all candidates at once): the lowest
+    # edge direction of each vertex along the face normal, and the lowest normal of the
+    # vertex's faces along it; a candidate whose values lie clearly (by 1e-9) on one side of
+    # the thresholds is decided here, the others take the exact per-candidate tests
+    nf_all = fpoly.face_normals[fs]
+    lo_e = _vertex_min(vpoly.vertex_edge_table(), vs, R, nf_all)
+    lo_f = _vertex_min(vpoly.vertex_face_table(), vs, R, nf_all)
+    band = 1e-9
+    clear = lo_e > -sin_tol + band                      # no edge below the plane: contact
+    below = lo_e < -sin_tol - band                      # an edge below the plane ...
+    apart = below & (lo_f > -cos_tol + band)            # ... and no face against: not one
+    for j in range(len(ks)):
+        v, f = int(vs[j]), int(fs[j])
+        if clear[j]:
+            out.append((v, f))
+            continue
+        if apart[j]:
+            continue
         dirs = vpoly.vertex_edge_dirs[v] @ R.T
         nf = fpoly.face_normals[f]
         if np.any(dirs @ nf < -sin_tol):
@@ -371,11 +426,30 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
             # level with a flush, coplanar face beside a slot it slides in (same normals).
             against = np.any((vpoly.face_normals[vpoly.vertex_faces[v]] @ R.T) @ nf
                              < -cos_tol)
-            if not against or _cone_enters(V[ci[k]], dirs, vpoly.vertex_edge_lengths[v],
+            if not against or _cone_enters(V[ci[ks[j]]], dirs, vpoly.vertex_edge_lengths[v],
                                            fpoly, pen, sin_tol):
                 continue
         out.append((v, f))
     return out
+
+
+def _vertex_min(table: Tuple[np.ndarray, np.ndarray, np.ndarray], vs: np.ndarray,
+                R: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """
+    Lowest component along ``normals[j]`` of vertex ``vs[j]``'s rows rotated by ``R``.
+
+    Per candidate ``j``: min over the vertex's rows r (a flattened table) of
+    ``(R r) . normals[j]``; nan when a vertex has no rows.
+    """
+    rows_all, start, count = table
+    out = np.full(len(vs), np.nan)
+    cnt = count[vs]
+    if len(vs) == 0 or not np.all(cnt > 0):
+        return out
+    seg = np.cumsum(cnt) - cnt
+    rows = np.repeat(start[vs], cnt) + (np.arange(int(cnt.sum())) - np.repeat(seg, cnt))
+    vals = ((rows_all[rows] @ R.T) * np.repeat(normals, cnt, axis=0)).sum(1)
+    return np.minimum.reduceat(vals, seg)
 
 
 def _cone_enters(apex: np.ndarray, dirs: np.ndarray, lengths: np.ndarray, other: Polyhedron,

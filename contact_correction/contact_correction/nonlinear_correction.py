@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
-from .contact_relation import ContactPair, evaluate_contacts
+from .contact_relation import ContactEvaluator, ContactPair
 from .polyhedron import cross3, Polyhedron
 
 __all__ = ['NonlinearResult', 'correct_nonlinear', 'apply_screw', 'constraint_rows',
@@ -106,6 +106,7 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
     scale = np.array([1.0 / L] * 3 + [1.0] * 3)
     best = None
     it = 0
+    evaluate = ContactEvaluator(moving, fixed, pairs)
     # Levenberg-Marquardt anchored at the observation, with continuation of the anchor weight
     # mu -> 0, then plain Gauss-Newton. Directions that are free at the solution (sliding
     # along a hole) look weakly constrained at a noisy, tilted pose; the anchor keeps the
@@ -114,7 +115,7 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
     for mu in tuple(anchor_schedule) + (0.0,):
         first = None
         for k in range(max_iterations if mu == 0.0 else min(max_iterations, 8)):
-            g = evaluate_contacts(moving, fixed, T, pairs)
+            g = evaluate(T)
             res = float(np.max(np.abs(g.distances)))
             if mu == 0.0 and (best is None or res < best[1]):
                 best = (T.copy(), res, it)

@@ -45,7 +45,8 @@ import numpy as np
 from stereo_manip_tools.transforms import (
     quaternion_from_matrix, rotation_about_axis, rotation_log, skew)
 
-from .contact_relation import ContactGeometry, ContactPair, EDGE, evaluate_contacts, FACE, VERTEX
+from .contact_relation import (
+    ContactEvaluator, ContactGeometry, ContactPair, EDGE, evaluate_contacts, FACE, VERTEX)
 from .nonlinear_correction import constraint_rows
 from .polyhedron import cross3, Polyhedron
 
@@ -291,13 +292,14 @@ def optimal_orientation_numerical(moving: Polyhedron, fixed: Polyhedron, T_rel_E
     alpha = C @ rotation_log(T_rel_S[:3, :3] @ R_E.T)
     t = T_rel_S[:3, 3].copy()
     best = (None, np.inf)
+    evaluate = ContactEvaluator(moving, fixed, pairs)
     for _ in range(max_iterations):
         phi = C.T @ alpha
         ang = float(np.linalg.norm(phi))
         R = (rotation_about_axis(phi, ang) if ang > 0 else np.eye(3)) @ R_E
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, t
-        g = evaluate_contacts(moving, fixed, T, pairs)
+        g = evaluate(T)
         res = float(np.max(np.abs(g.distances)))
         if res < best[1]:
             best = (R, res)

@@ -261,6 +261,15 @@ def _triangulate_polygon(V: np.ndarray, loop: np.ndarray, normal: np.ndarray) ->
     return tris
 
 
+def _flatten_rows(per_vertex: Dict[int, np.ndarray], n: int
+                  ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stack per-vertex (k, 3) arrays into rows (M, 3), start (n,), count (n,) (0: absent)."""
+    count = np.array([len(per_vertex.get(v, ())) for v in range(n)], dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+    rows = [np.asarray(per_vertex[v], dtype=float).reshape(-1, 3) for v in range(n) if count[v]]
+    return (np.vstack(rows) if rows else np.zeros((0, 3))), start, count
+
+
 @dataclass
 class Polyhedron:
     """
@@ -325,6 +334,31 @@ class Polyhedron:
         self.bbox_min = self.vertices.min(0)
         self.bbox_max = self.vertices.max(0)
         self._samples: Dict[float, np.ndarray] = {}
+        self._vertex_edge_table: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+        self._vertex_face_table: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+
+    def vertex_edge_table(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Return ``vertex_edge_dirs`` flattened (cached): directions (M, 3), start, count (V,).
+
+        Vertex ``v``'s edge directions are rows ``start[v]:start[v] + count[v]`` (count 0 for a
+        vertex without edges).
+        """
+        if self._vertex_edge_table is None:
+            self._vertex_edge_table = _flatten_rows(self.vertex_edge_dirs, len(self.vertices))
+        return self._vertex_edge_table
+
+    def vertex_face_table(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Return the normals of ``vertex_faces`` flattened (cached): (M, 3), start, count (V,).
+
+        Vertex ``v``'s incident face normals are rows ``start[v]:start[v] + count[v]``.
+        """
+        if self._vertex_face_table is None:
+            self._vertex_face_table = _flatten_rows(
+                {v: self.face_normals[f] for v, f in self.vertex_faces.items()},
+                len(self.vertices))
+        return self._vertex_face_table
 
     def edge_samples(self, spacing: float) -> np.ndarray:
         """Feature vertices plus points every ``spacing`` [m] along each edge, (S, 3); cached."""

@@ -213,6 +213,8 @@ class FrameCandidates:
 #: the relation's correction lifted the peg by the insertion depth)
 EXIT_SLACK = 0.5
 
+_EYE6 = np.eye(6)
+
 #: chi2 by which a relation with fewer constraints must explain a frame better than the chosen
 #: one to make it ambiguous (the data favour it, only the priors do not)
 AMBIGUITY_FIT = 1.0
@@ -517,21 +519,26 @@ class RelationRecognizer:
             b += gb
             dd += gdd
             Nc += gNc
-        w = np.linalg.eigvalsh(Nc)
-        rank = int(np.count_nonzero(w > 1e-4 * max(w[-1], 1e-300))) if state else 0
+        if state:
+            w = np.linalg.eigvalsh(Nc)
+            rank = int(np.count_nonzero(w > 1e-4 * max(w[-1], 1e-300)))
+        else:
+            rank = 0
         active = mask.copy()
         pushed = 0
         A, d = self._A, self._d
+        s2I = s2 * _EYE6
+        lim = -3.0 * self.options.sigma_model
         for _ in range(4):
-            if not np.any(active):
+            if not active.any():
                 chi2, delta = 0.0, np.zeros(6)
             else:
-                y = np.linalg.solve(N + s2 * np.eye(6), b)
+                y = np.linalg.solve(N + s2I, b)
                 chi2 = float(max(dd - b @ y, 0.0) / s2)
                 delta = -y
             r = d + A @ delta
-            new = (~active) & self._guard & (r < -3.0 * self.options.sigma_model)
-            if not np.any(new):
+            new = (~active) & self._guard & (r < lim)
+            if not new.any():
                 break
             idx = np.flatnonzero(new)
             active[idx] = True
