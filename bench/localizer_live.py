@@ -229,6 +229,9 @@ def summarise(runs, load_before, args):
         goal('reacquisition_cpu_s_max', 1.0, '<=',
              max(recov) if recov and not unrecovered else (float('nan') if losses else 0.0)),
         goal('scored_published_poses', 1, '>=', published),
+        # a run in which an object never gets a pose is a loss the pose statistics cannot show
+        goal('objects_without_any_pose_in_a_run', 0, '==',
+             sum(o['published'] == 0 for o in objs)),
         goal('nodes_died', 0, '==', sum(len(r['dead_nodes']) for r in runs)),
     ]
     write_report('localizer_live', goals, runs=runs, losses=losses, unrecovered_at_end=unrecovered,
