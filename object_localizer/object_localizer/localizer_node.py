@@ -67,6 +67,7 @@ class ObjectLocalizerNode(Node):
         'max_penetration': 'max_penetration',
         'stereo_baseline': 'stereo_baseline',
         'static_recheck_period': 'static_recheck_period',
+        'relock_window': 'relock_window',
         'track_length': 'max_history',
     }
 
@@ -130,6 +131,10 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('static_recheck_period', 1.0,
                                _float('re-verification period of static objects [s of cloud '
                                       'stamps]', 0.0, 3600.0))
+        self.declare_parameter('relock_window', 1.0,
+                               _float('after a loss, for this long [s of cloud stamps] the '
+                                      'search first refines the last verified pose (0: off)',
+                                      0.0, 60.0))
         self.declare_parameter('segment_margin', 0.005,
                                _float('margin around the model box for objects/<name>/cloud [m]',
                                       0.0, 0.1))

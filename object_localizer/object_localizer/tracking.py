@@ -142,6 +142,12 @@ class TrackerSettings:
         parts) and is only published if the last known pose is clearly nearer one of them.
     :ivar twin_reacquire_radius: a part with an identical twin is re-acquired only within this
         mean displacement [m] of its last known pose (and clearly nearer it than the twin's).
+    :ivar relock_window: for this long [s, cloud stamps] after a loss, the search of a lost
+        track first refines the last verified pose in the new cloud and takes it when it passes
+        the acquisition check (and, for a part with an identical twin, stays within
+        ``twin_reacquire_radius`` of it); 0 turns it off. A track lost to a brief occlusion or
+        a borderline check comes back at the cost of one ICP + check instead of a global
+        search, and identical parts keep their names.
     :ivar static: the object does not move: after a verified pose it is held and re-verified
         every ``static_recheck_period`` [s] (cloud stamps).
     :ivar max_history: accepted poses kept in :attr:`ObjectTracker.history` (bounded).
@@ -174,6 +180,7 @@ class TrackerSettings:
     max_penetration: float = 0.005
     ambiguity_distance: float = 0.005
     twin_reacquire_radius: float = 0.02
+    relock_window: float = 1.0
     static: bool = False
     static_recheck_period: float = 1.0
     max_history: int = 300
@@ -717,6 +724,7 @@ class ObjectTracker:
     lost_count: int = 0
     acquisitions: int = 0
     _last_check_ns: Optional[int] = None
+    _lost_ns: Optional[int] = None             # stamp of the cloud where the track was lost
     _last_quality: Optional[PoseQuality] = None
     _others: list = field(default_factory=list)
 
@@ -732,6 +740,7 @@ class ObjectTracker:
         self.reference = self.hint
         self.state = TrackState.ACQUIRING
         self._last_check_ns = None
+        self._lost_ns = None
 
     def _accept(self, stamp_ns: int, pose: np.ndarray) -> None:
         if self.history and stamp_ns <= self.history[-1][0]:
@@ -805,7 +814,7 @@ class ObjectTracker:
                 self._accept(stamp_ns, pose)
                 self._last_check_ns = stamp_ns
                 return TrackUpdate(pose, TrackState.STATIC, q, how)
-            return self._lose(q, f'static pose failed its re-check: {q.reason}')
+            return self._lose(q, f'static pose failed its re-check: {q.reason}', stamp_ns)
         if self.state == TrackState.TRACKING and self.history:
             gap = (stamp_ns - self.history[-1][0]) * 1e-9
             if len(self.history) >= 2 and 0.0 < gap <= s.prediction_horizon:
@@ -824,7 +833,7 @@ class ObjectTracker:
             if q.passed:
                 self._accept(stamp_ns, pose)
                 return TrackUpdate(pose, TrackState.TRACKING, q, 'tracking')
-            lost = self._lose(q, f'track lost: {q.reason}')
+            lost = self._lose(q, f'track lost: {q.reason}', stamp_ns)
             if not reacquire:
                 return lost
             # re-acquire at once, in this cloud (the next one may be far away in time)
@@ -836,16 +845,25 @@ class ObjectTracker:
         return self._acquire(scene, stamp_ns, '')
 
     def _acquire(self, scene: SceneCloud, stamp_ns: int, prefix: str) -> TrackUpdate:
-        """Try a hint first (verified), else the global search from scratch."""
+        """Try a hint or a recent last pose first (verified), else the global search."""
         s = self.settings
+        hint_reason = prefix
         if self.hint is not None:
             hint, self.hint = self.hint, None
             pose, q = self._refine_and_check(scene, hint, None, acquisition=True)
             if q.passed:
                 return self._start(stamp_ns, pose, q, 'initial pose verified')
             hint_reason = f'{prefix}initial pose rejected ({q.reason}); '
-        else:
-            hint_reason = prefix
+        elif self._relock_due(stamp_ns):
+            pose, q = self._refine_and_check(scene, self.reference, None, acquisition=True)
+            moved = mean_displacement(self.model, pose, self.reference)
+            if q.passed and (not self.twins or moved <= s.twin_reacquire_radius):
+                return self._start(stamp_ns, pose, q, hint_reason + (
+                    f're-locked: the last verified pose refined ({1e3 * moved:.1f} mm) passed '
+                    'the acquisition check'), acquired=True)
+            why = q.reason if not q.passed else \
+                f'moved {1e3 * moved:.0f} mm, beyond the identical-part radius'
+            hint_reason = f'{hint_reason}last verified pose rejected ({why}); '
         self.acquisitions += 1
         best: Optional[Tuple[np.ndarray, PoseQuality]] = None
         passed: list = []
@@ -939,6 +957,12 @@ class ObjectTracker:
         swapped = own[j] + other[i]
         return distinct[i] if cost < 0.5 * swapped else None
 
+    def _relock_due(self, stamp_ns: int) -> bool:
+        """Return whether a lost track's last verified pose is tried first in this cloud."""
+        return (self.state == TrackState.LOST and self.reference is not None
+                and self._lost_ns is not None
+                and 0 < stamp_ns - self._lost_ns <= self.settings.relock_window * 1e9)
+
     def known_pose(self) -> Optional[np.ndarray]:
         """Return the last verified pose, else the last known one (hint, pose before a loss)."""
         return self.history[-1][1] if self.history else self.reference
@@ -951,8 +975,9 @@ class ObjectTracker:
         self._last_check_ns = stamp_ns
         return TrackUpdate(pose, self.state, q, reason, acquired=acquired)
 
-    def _lose(self, q: PoseQuality, reason: str) -> TrackUpdate:
+    def _lose(self, q: PoseQuality, reason: str, stamp_ns: int) -> TrackUpdate:
         self.lost_count += 1
+        self._lost_ns = stamp_ns
         if self.history:
             self.reference = self.history[-1][1]
         self.history.clear()

@@ -149,6 +149,41 @@ def test_loss_is_reported_and_the_object_reacquired(arm):
     assert tracker.lost_count == 1
 
 
+def test_a_briefly_lost_track_is_relocked_at_its_last_verified_pose(arm):
+    """
+    The object vanishes for one cloud (occluded), then shows again 5 mm from where it was.
+
+    Within ``relock_window`` the search first refines the last verified pose: the track comes
+    back, right, although the global search finds nothing here; after the window, or with it
+    off, only the global search runs (and finds nothing).
+    """
+    mesh, model = arm
+    calls = []
+
+    def acquirer(m, p, seed):
+        calls.append(seed)
+        return []
+    back = moving_pose(1)
+    results = {}
+    for window, t_back in ((1.0, 0.066), (0.0, 0.066), (1.0, 1.5)):
+        rng = np.random.default_rng(12)
+        tracker = ObjectTracker(model, TrackerSettings(relock_window=window), acquirer=acquirer)
+        tracker.reset(moving_pose(0))
+        assert tracker.update(observe(mesh, moving_pose(0), rng), 0).pose is not None
+        lost = tracker.update(wall_behind(moving_pose(0), rng), 33_000_000)
+        assert lost.pose is None and lost.state == TrackState.LOST, lost.reason
+        calls.clear()
+        results[window, t_back] = (tracker.update(observe(mesh, back, rng), int(t_back * 1e9)),
+                                   len(calls))
+    res, searches = results[1.0, 0.066]
+    assert res.pose is not None and res.acquired and res.state == TrackState.TRACKING, res.reason
+    assert 're-locked' in res.reason and searches == 0
+    assert add_s(res.pose, back, model.points) < 0.001
+    for key in ((0.0, 0.066), (1.0, 1.5)):
+        res, searches = results[key]
+        assert res.pose is None and searches == 1, (key, res.reason)
+
+
 def test_nothing_is_published_when_the_object_is_gone(arm):
     mesh, model = arm
     rng = np.random.default_rng(8)
