@@ -171,6 +171,39 @@ def _build(model: RevoluteModel):
     return build
 
 
+def _joint_covariances(residuals, build, model: RevoluteModel, p: np.ndarray,
+                       sigma_n: float) -> dict:
+    """
+    Return the covariance of the 9 joint parameters and of the axis point near the data.
+
+    :param residuals: whitened residual vector as a function of the 9-parameter step ``x``
+        (``build(x)`` the stepped model); its Jacobian is taken by central differences.
+    :param p: (N, 3) positions [m] in B; the axis point is the one nearest their mean.
+    :param sigma_n: noise scale [residual units] of the whitened residuals.
+    :returns: ``covariance`` (9, 9), ``axis_angle_std_in_a``/``_in_b`` [rad],
+        ``axis_point_std`` [m] and ``axis_point_covariance`` (3, 3) [m^2], across the axis.
+    """
+    step = 1e-6
+    eye = np.eye(9) * step
+    J = np.column_stack([(residuals(e) - residuals(-e)) / (2.0 * step) for e in eye])
+    cov = sigma_n ** 2 * np.linalg.pinv(J.T @ J, rcond=1e-12, hermitian=True)
+    anchor = p.mean(axis=0)
+
+    def near(x):
+        mx = build(x)
+        return mx.point_in_b + mx.axis_in_b * ((anchor - mx.point_in_b) @ mx.axis_in_b)
+
+    c0 = near(np.zeros(9))
+    G = np.column_stack([(near(e) - c0) / step for e in eye])
+    P = np.eye(3) - np.outer(model.axis_in_b, model.axis_in_b)
+    cov_c = P @ G @ cov @ G.T @ P
+    return {'covariance': cov,
+            'axis_angle_std_in_a': float(np.sqrt(max(np.trace(cov[:2, :2]), 0.0))),
+            'axis_angle_std_in_b': float(np.sqrt(max(np.trace(cov[2:4, 2:4]), 0.0))),
+            'axis_point_std': float(np.sqrt(max(np.trace(cov_c), 0.0))),
+            'axis_point_covariance': cov_c}
+
+
 def refine_revolute_marker(model: RevoluteModel, R: np.ndarray, p: np.ndarray,
                            side: float, normal_axis: int = 2, rounds: int = 3,
                            q0: Optional[np.ndarray] = None) -> dict:
@@ -234,33 +267,8 @@ def refine_revolute_marker(model: RevoluteModel, R: np.ndarray, p: np.ndarray,
     # central differences of the profiled residuals (angles re-minimised under the final W on
     # both sides): a forward difference from ``chi`` (angles minimised under the previous
     # round's W) mixed that mismatch into J and made the point std ~3x too small
-    step = 1e-6
-    J = np.empty((chi.size, 9))
-    for j in range(9):
-        e = np.zeros(9)
-        e[j] = step
-        J[:, j] = (fun0(e) - fun0(-e)) / (2.0 * step)
-    cov = sigma_n ** 2 * np.linalg.pinv(J.T @ J, rcond=1e-12, hermitian=True)
-    anchor = p.mean(axis=0)
-
-    def near(x):
-        mx = build(x)
-        return mx.point_in_b + mx.axis_in_b * ((anchor - mx.point_in_b) @ mx.axis_in_b)
-
-    c0 = near(np.zeros(9))
-    G = np.empty((3, 9))
-    for j in range(9):
-        e = np.zeros(9)
-        e[j] = step
-        G[:, j] = (near(e) - c0) / step
-    P = np.eye(3) - np.outer(m.axis_in_b, m.axis_in_b)
-    cov_c = P @ G @ cov @ G.T @ P
-    return {'model': m, 'angles': q, 'information': W, 'sigma_n': sigma_n, 'covariance': cov,
-            'neg2_log_likelihood': neg2ll,
-            'axis_angle_std_in_a': float(np.sqrt(max(np.trace(cov[:2, :2]), 0.0))),
-            'axis_angle_std_in_b': float(np.sqrt(max(np.trace(cov[2:4, 2:4]), 0.0))),
-            'axis_point_std': float(np.sqrt(max(np.trace(cov_c), 0.0))),
-            'axis_point_covariance': cov_c}
+    return {'model': m, 'angles': q, 'information': W, 'sigma_n': sigma_n,
+            'neg2_log_likelihood': neg2ll, **_joint_covariances(fun0, build, m, p, sigma_n)}
 
 
 def project_marker_corners(R: np.ndarray, p: np.ndarray, corners: np.ndarray) -> np.ndarray:
@@ -370,30 +378,6 @@ def refine_revolute_corners(model: RevoluteModel, R: np.ndarray, p: np.ndarray, 
         mx = build(x)
         return _corner_residuals(mx, corner_angles(mx, uv, C, q, 3), uv, C).ravel()
 
-    step = 1e-6
-    J = np.empty((r.size, 9))
-    for j in range(9):
-        e = np.zeros(9)
-        e[j] = step
-        J[:, j] = (fun0(e) - fun0(-e)) / (2.0 * step)
-    cov = sigma_n ** 2 * np.linalg.pinv(J.T @ J, rcond=1e-12, hermitian=True)
-    anchor = p.mean(axis=0)
-
-    def near(x):
-        mx = build(x)
-        return mx.point_in_b + mx.axis_in_b * ((anchor - mx.point_in_b) @ mx.axis_in_b)
-
-    c0 = near(np.zeros(9))
-    G = np.empty((3, 9))
-    for j in range(9):
-        e = np.zeros(9)
-        e[j] = step
-        G[:, j] = (near(e) - c0) / step
-    P = np.eye(3) - np.outer(m.axis_in_b, m.axis_in_b)
-    cov_c = P @ G @ cov @ G.T @ P
     return {'model': m, 'angles': q, 'information': W, 'sigma_n': sigma_n,
-            'frame_chi2': frame_chi2, 'covariance': cov, 'neg2_log_likelihood': neg2ll,
-            'axis_angle_std_in_a': float(np.sqrt(max(np.trace(cov[:2, :2]), 0.0))),
-            'axis_angle_std_in_b': float(np.sqrt(max(np.trace(cov[2:4, 2:4]), 0.0))),
-            'axis_point_std': float(np.sqrt(max(np.trace(cov_c), 0.0))),
-            'axis_point_covariance': cov_c}
+            'frame_chi2': frame_chi2, 'neg2_log_likelihood': neg2ll,
+            **_joint_covariances(fun0, build, m, p, sigma_n)}
