@@ -19,6 +19,18 @@ __all__ = ['crop_rays', 'crop_near', 'crop_window', 'nearest_depth_image']
 
 
 @numba.njit(cache=True)
+def _gather(P, keep, m):  # pragma: no cover - numba
+    """Rows ``keep[:m]`` of ``P`` as a new (m, 3) float64 array (the crops' output)."""
+    out = np.empty((m, 3))
+    for k in range(m):
+        i = keep[k]
+        out[k, 0] = P[i, 0]
+        out[k, 1] = P[i, 1]
+        out[k, 2] = P[i, 2]
+    return out
+
+
+@numba.njit(cache=True)
 def _rays(P, a0, b0, rho):  # pragma: no cover - numba
     n = P.shape[0]
     keep = np.empty(n, np.int64)
@@ -28,13 +40,7 @@ def _rays(P, a0, b0, rho):  # pragma: no cover - numba
         if z > 1e-6 and abs(P[i, 0] - a0 * z) <= rho * z and abs(P[i, 1] - b0 * z) <= rho * z:
             keep[m] = i
             m += 1
-    out = np.empty((m, 3))
-    for k in range(m):
-        i = keep[k]
-        out[k, 0] = P[i, 0]
-        out[k, 1] = P[i, 1]
-        out[k, 2] = P[i, 2]
-    return out
+    return _gather(P, keep, m)
 
 
 def crop_rays(points: np.ndarray, a0: float, b0: float, rho: float) -> np.ndarray:
@@ -72,13 +78,7 @@ def _near(P, centre, reach, R, t, lo, hi):  # pragma: no cover - numba
         if ok:
             keep[m] = i
             m += 1
-    out = np.empty((m, 3))
-    for k in range(m):
-        i = keep[k]
-        out[k, 0] = P[i, 0]
-        out[k, 1] = P[i, 1]
-        out[k, 2] = P[i, 2]
-    return out
+    return _gather(P, keep, m)
 
 
 def crop_near(points: np.ndarray, centre: np.ndarray, reach: float, pose: np.ndarray,
@@ -109,13 +109,7 @@ def _window(P, lo0, lo1, hi0, hi1):  # pragma: no cover - numba
         if a >= lo0 and a <= hi0 and b >= lo1 and b <= hi1:
             keep[m] = i
             m += 1
-    out = np.empty((m, 3))
-    for k in range(m):
-        i = keep[k]
-        out[k, 0] = P[i, 0]
-        out[k, 1] = P[i, 1]
-        out[k, 2] = P[i, 2]
-    return out
+    return _gather(P, keep, m)
 
 
 def crop_window(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

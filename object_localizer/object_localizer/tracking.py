@@ -344,11 +344,9 @@ class SceneCloud:
             raise ValueError(f'scene points must have shape (N, 3), got {P.shape}')
         self.points = P
         with np.errstate(invalid='ignore'):
-            self._z = P[:, 2]
-            self._front = self._z > 1e-6
-        if int(np.count_nonzero(self._front)) < 10:
-            raise ValueError(f'scene has only {int(np.count_nonzero(self._front))} finite points '
-                             'in front of the sensor')
+            front = int(np.count_nonzero(P[:, 2] > 1e-6))
+        if front < 10:
+            raise ValueError(f'scene has only {front} finite points in front of the sensor')
 
     def cone(self, centre: np.ndarray, radius: float) -> np.ndarray:
         """
