@@ -410,37 +410,21 @@ def xyz_to_pointcloud2(points: np.ndarray, header: Optional[Header] = None, *,
     P = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     n = len(P)
     names = ['x', 'y', 'z']
-    dtypes = [np.float32] * 3
     cols = [P[:, 0], P[:, 1], P[:, 2]]
     if rgb is not None:
         c = np.asarray(rgb).reshape(-1, 3).astype(np.uint32)
         if len(c) != n:
             raise ValueError(f'rgb has {len(c)} rows for {n} points')
         names.append('rgb')
-        dtypes.append(np.float32)
         cols.append(((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).view(np.float32))
     if normals is not None:
         nm = np.asarray(normals, dtype=np.float32).reshape(-1, 3)
         if len(nm) != n:
             raise ValueError(f'normals has {len(nm)} rows for {n} points')
         names += ['normal_x', 'normal_y', 'normal_z']
-        dtypes += [np.float32] * 3
         cols += [nm[:, 0], nm[:, 1], nm[:, 2]]
-    structured = np.zeros(n, dtype=[(nm_, dt) for nm_, dt in zip(names, dtypes)])
-    for name, col in zip(names, cols):
-        structured[name] = col
-    msg = PointCloud2()
-    if header is not None:
-        msg.header = header
-    msg.height, msg.width = 1, n
-    msg.fields = [PointField(name=name, offset=4 * i, datatype=PointField.FLOAT32, count=1)
-                  for i, name in enumerate(names)]
-    msg.is_bigendian = sys.byteorder == 'big'
-    msg.point_step = 4 * len(names)
-    msg.row_step = msg.point_step * n
-    msg.is_dense = bool(np.all(np.isfinite(P)))
-    msg.data = structured.tobytes()
-    return msg
+    return float32_fields_to_pointcloud2(np.column_stack(cols).astype(np.float32, copy=False),
+                                         names, header)
 
 
 def float32_fields_to_pointcloud2(buffer: np.ndarray, fields: Sequence[str],
