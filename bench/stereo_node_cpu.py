@@ -299,9 +299,9 @@ def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
         geo = stereo_geometry(infos[0], infos[1], w, h)
         lc = np.ascontiguousarray(limg[:, dmin:])
         rc = np.ascontiguousarray(rimg[:, :w - dmin])
-        pl = timed('census byte planes, left', mc.census_planes, lc, cw)
-        pr = timed('census byte planes, right', mc.census_planes, rc, cw)
-        dl, dr = timed('cost + aggregation + WTA (fused)', op._census_box_wta, pl, pr, nd,
+        cl = timed('census byte planes, left', mc.census_planes, lc, cw)
+        cr = timed('census byte planes, right', mc.census_planes, rc, cw)
+        dl, dr = timed('cost + aggregation + WTA (fused)', op._census_box_wta, cl, cr, nd,
                        win[0] // 2, win[1] // 2, nbits, 1, 0.0)
         d = timed('left-right check', rf.left_right_check, dl, dr, defaults['lr_max_diff'])
         d = timed('speckle filter', rf.remove_speckles, d, defaults['speckle_size'],

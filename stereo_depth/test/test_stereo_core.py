@@ -329,6 +329,27 @@ def test_speckle_median_and_background_fill():
     np.testing.assert_array_equal(fill_invalid(row), [[7, 3, 3, 3, 3, 9, 9]])
 
 
+@pytest.mark.parametrize('size', [3, 5])
+def test_median_filter_is_the_median_of_the_valid_window_values(size):
+    # brute force: every non-NaN pixel takes np.median of the non-NaN values of its window
+    # clipped to the image (the 3x3 sorting network and its fall-backs included)
+    rng = np.random.default_rng(3)
+    for trial in range(12):
+        h, w = rng.integers(1, 25, 2)
+        d = rng.uniform(0, 60, (h, w)).astype(np.float32)
+        if trial % 2:
+            d = np.round(d)                     # ties
+        d[rng.random((h, w)) < (0.0, 0.05, 0.4)[trial % 3]] = np.nan
+        r = size // 2
+        ref = np.full_like(d, np.nan)
+        for y in range(h):
+            for x in range(w):
+                if not np.isnan(d[y, x]):
+                    win = d[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1]
+                    ref[y, x] = np.median(win[~np.isnan(win)])
+        np.testing.assert_allclose(median_filter(d, size), ref, rtol=0, atol=1e-5)
+
+
 # --- pipeline and evaluation ----------------------------------------------------------------
 
 @pytest.mark.parametrize('method', ['sgm', 'sgm4', 'block_matching', 'bp', 'opencv_sgbm'])
