@@ -49,7 +49,7 @@ SCENE = 'peg_in_hole'
 
 
 def _main_kernel():
-    """Compile and return main's fused kernel (the peer); imports numba lazily."""
+    """Return main's fused kernel and 3x3 median (the peers), compiled on first call."""
     import numba
 
     from stereo_depth.matching_cost import _hamming_row, _reverse_row
@@ -119,7 +119,46 @@ def _main_kernel():
                 _right_row(rarg, dr[y])
         return dl, dr
 
-    return _main_census_box_wta
+    # main's 3x3 median (7594e47, copied unchanged): OpenCV's median of the complete windows,
+    # the valid-neighbour median elsewhere
+    @numba.njit(parallel=True, nogil=True)
+    def _main_nan_median(d, r, full, use_full):
+        # full: the plain median of every complete window (OpenCV), used where the whole window
+        # lies inside the image and holds no NaN; other pixels take the median of their valid
+        # neighbours by insertion sort.
+        h, w = d.shape
+        out = np.empty_like(d)
+        for y in numba.prange(h):
+            buf = np.empty((2 * r + 1) * (2 * r + 1), np.float32)
+            inner_y = r <= y < h - r
+            for x in range(w):
+                if np.isnan(d[y, x]):
+                    out[y, x] = np.nan
+                    continue
+                if use_full and inner_y and r <= x < w - r:
+                    s = np.float32(0.0)
+                    for yy in range(y - r, y + r + 1):
+                        for xx in range(x - r, x + r + 1):
+                            s += d[yy, xx]
+                    if not np.isnan(s):     # NaN propagates through the sum
+                        out[y, x] = full[y, x]
+                        continue
+                n = 0
+                for yy in range(max(0, y - r), min(h, y + r + 1)):
+                    for xx in range(max(0, x - r), min(w, x + r + 1)):
+                        v = d[yy, xx]
+                        if not np.isnan(v):
+                            # insertion into the sorted prefix buf[:n]
+                            k = n
+                            while k > 0 and buf[k - 1] > v:
+                                buf[k] = buf[k - 1]
+                                k -= 1
+                            buf[k] = v
+                            n += 1
+                out[y, x] = buf[n // 2] if n % 2 == 1 else 0.5 * (buf[n // 2 - 1] + buf[n // 2])
+        return out
+
+    return _main_census_box_wta, _main_nan_median
 
 
 def stats(values: List[float]) -> Dict[str, float]:
@@ -335,9 +374,10 @@ def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
     node-process figures of part 1 cannot separate a 10 ms change); alternating the two paths
     on every frame gives both the same load, and the per-frame difference is the change.
     main's path (7594e47): 32-bit census codes (``census_transform``) into main's fused kernel
-    (``_main_kernel``: uint8 Hamming rows, per-pixel WTA), then the same refinement, depth and
-    packed cloud. This branch's: ``compute_disparity`` (census byte planes, the padded
-    packed-minimum kernel). Both include decoding, depth and the message; the clouds are
+    (``_main_kernel``: uint8 Hamming rows, per-pixel WTA), main's median (OpenCV + the
+    valid-neighbour median), then the same depth and packed cloud. This branch's:
+    ``compute_disparity`` (census byte planes, the padded packed-minimum kernel, the 3x3
+    sorting-network median). Both include decoding, depth and the message; the clouds are
     checked byte-equal on every frame.
     """
     import numba
@@ -353,7 +393,11 @@ def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
     cw, win = tuple(p['census_window']), tuple(p['window'])
     nbits = np.uint8(cw[0] * cw[1] - 1)
 
-    main_kernel = _main_kernel()
+    import cv2
+
+    from stereo_depth import refinement as rf
+
+    main_kernel, main_nan_median = _main_kernel()
 
     def main_path(lm, rm):
         limg, rimg, colours = prepare_pair(lm, rm)
@@ -364,7 +408,11 @@ def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
         cl = mc.census_transform(lc, cw).astype(np.uint32)      # main's census_codes
         cr = mc.census_transform(rc, cw).astype(np.uint32)
         dl, dr = main_kernel(cl, cr, nd, win[0] // 2, win[1] // 2, nbits, 1, 0.0)
-        d = pl._refine(dl, dr, p)
+        d = rf.left_right_check(dl, dr, p['lr_max_diff'])
+        d = rf.remove_speckles(d, p['speckle_size'], p['speckle_diff'])
+        full = cv2.medianBlur(np.where(np.isfinite(d), d, np.float32(0.0)), p['median'])
+        d = main_nan_median(d, p['median'] // 2, full, True)
+        d = rf.fill_invalid(d, 'row')
         d[(d < 0.5) | (d > nd - 1.5)] = np.nan
         disp = np.full((h, w), np.nan, np.float32)
         disp[:, dmin:] = d + np.float32(dmin)
