@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import List, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 from stereo_manip_tools.transforms import invert_transform, transform_points
@@ -408,12 +408,17 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
     clear = lo_e > -sin_tol + band                      # no edge below the plane: contact
     below = lo_e < -sin_tol - band                      # an edge below the plane ...
     apart = below & (lo_f > -cos_tol + band)            # ... and no face against: not one
-    for j in range(len(ks)):
-        v, f = int(vs[j]), int(fs[j])
-        if clear[j]:
-            out.append((v, f))
+    # the exact per-candidate tests; the cone tests of all candidates that need one are made
+    # in one batch (the same per-point queries)
+    decided: List[Optional[bool]] = []
+    cones: List[Tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    for j, (v, f, c, a) in enumerate(zip(vs.tolist(), fs.tolist(), clear.tolist(),
+                                         apart.tolist())):
+        if c:
+            decided.append(True)
             continue
-        if apart[j]:
+        if a:
+            decided.append(False)
             continue
         dirs = vpoly.vertex_edge_dirs[v] @ R.T
         nf = fpoly.face_normals[f]
@@ -426,10 +431,21 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
             # level with a flush, coplanar face beside a slot it slides in (same normals).
             against = np.any((vpoly.face_normals[vpoly.vertex_faces[v]] @ R.T) @ nf
                              < -cos_tol)
-            if not against or _cone_enters(V[ci[ks[j]]], dirs, vpoly.vertex_edge_lengths[v],
-                                           fpoly, pen, sin_tol):
+            if not against:
+                decided.append(False)
                 continue
-        out.append((v, f))
+            decided.append(None)
+            cones.append((V[ci[ks[j]]], dirs, vpoly.vertex_edge_lengths[v]))
+            continue
+        decided.append(True)
+    enters = _cones_enter(cones, fpoly, pen, sin_tol) if cones else []
+    c = 0
+    for v, f, ok_j in zip(vs.tolist(), fs.tolist(), decided):
+        if ok_j is None:
+            ok_j = not enters[c]
+            c += 1
+        if ok_j:
+            out.append((v, f))
     return out
 
 
@@ -452,26 +468,32 @@ def _vertex_min(table: Tuple[np.ndarray, np.ndarray, np.ndarray], vs: np.ndarray
     return np.minimum.reduceat(vals, seg)
 
 
-def _cone_enters(apex: np.ndarray, dirs: np.ndarray, lengths: np.ndarray, other: Polyhedron,
-                 depth: float, sin_tol: float) -> bool:
+def _cones_enter(cones: Sequence[Tuple[np.ndarray, np.ndarray, np.ndarray]], other: Polyhedron,
+                 depth: float, sin_tol: float) -> List[bool]:
     """
-    Tell whether an edge leaving ``apex`` runs into the interior of ``other``.
+    Tell, per vertex, whether an edge leaving it runs into the interior of ``other``.
 
     A point a quarter along each edge (at most 10 mm) is tested; it must be inside ``other``
     deeper than the allowed ``depth`` plus the angular slack. Points on ``other``'s surface
-    (an edge lying along a face of the other solid) do not count.
+    (an edge lying along a face of the other solid) do not count. All vertices' points are
+    queried in one batch.
+
+    :param cones: per vertex: apex [m] (3,), edge directions (k, 3), edge lengths [m] (k,).
+    :returns: per vertex, True when an edge enters ``other``.
     """
-    delta = np.minimum(0.25 * lengths, 0.01)
-    q = apex + delta[:, None] * dirs
-    box = other.in_bbox(q)
-    if not np.any(box):
-        return False
-    q, delta = q[box], delta[box]
-    inside = other.contains(q) > 0.5 + 1e-3
-    if not np.any(inside):
-        return False
-    dist = other.distance_to_surface(q[inside])
-    return bool(np.any(dist > depth + delta[inside] * sin_tol + 1e-9))
+    delta = np.concatenate([np.minimum(0.25 * ln, 0.01) for _, _, ln in cones])
+    q = np.concatenate([a + np.minimum(0.25 * ln, 0.01)[:, None] * d for a, d, ln in cones])
+    owner = np.repeat(np.arange(len(cones)), [len(ln) for _, _, ln in cones])
+    hit = np.zeros(len(q), dtype=bool)
+    box = np.flatnonzero(other.in_bbox(q))
+    if len(box):
+        inside = box[other.contains(q[box]) > 0.5 + 1e-3]
+        if len(inside):
+            dist = other.distance_to_surface(q[inside])
+            hit[inside] = dist > depth + delta[inside] * sin_tol + 1e-9
+    out = np.zeros(len(cones), dtype=bool)
+    np.logical_or.at(out, owner, hit)
+    return out.tolist()
 
 
 def penetration_depth(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
