@@ -390,10 +390,7 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
     if len(ci) == 0:
         return []
     Q = V[ci] - D[ci, cf][:, None] * fpoly.face_normals[cf]
-    ok = np.zeros(len(ci), dtype=bool)
-    for f in np.unique(cf):
-        sel = cf == f
-        ok[sel] = fpoly.face_distance(int(f), Q[sel]) <= margin
+    ok = fpoly.faces_distance(cf, Q) <= margin
     out = []
     ks = np.flatnonzero(ok)
     vs, fs = idx[ci[ks]], cf[ks]

@@ -115,53 +115,76 @@ def winding_number(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
 try:  # compiled kernels for the per-frame queries; the numpy versions above are the fallback
     import numba
 
+    @numba.njit(cache=True, fastmath=False, inline='always')
+    def _tri_dist(px: float, py: float, pz: float, T: np.ndarray,
+                  j: int) -> float:  # pragma: no cover
+        """Distance from the point (px, py, pz) to triangle ``T[j]`` (3, 3)."""
+        ax, ay, az = T[j, 0, 0], T[j, 0, 1], T[j, 0, 2]
+        bx, by, bz = T[j, 1, 0], T[j, 1, 1], T[j, 1, 2]
+        cx, cy, cz = T[j, 2, 0], T[j, 2, 1], T[j, 2, 2]
+        abx, aby, abz = bx - ax, by - ay, bz - az
+        acx, acy, acz = cx - ax, cy - ay, cz - az
+        nx = aby * acz - abz * acy
+        ny = abz * acx - abx * acz
+        nz = abx * acy - aby * acx
+        nn = nx * nx + ny * ny + nz * nz
+        apx, apy, apz = px - ax, py - ay, pz - az
+        d = np.inf
+        if nn > 0.0:
+            # barycentric (v, w) of the projection
+            qx = apy * acz - apz * acy
+            qy = apz * acx - apx * acz
+            qz = apx * acy - apy * acx
+            v = (qx * nx + qy * ny + qz * nz) / nn
+            rx = aby * apz - abz * apy
+            ry = abz * apx - abx * apz
+            rz = abx * apy - aby * apx
+            w = (rx * nx + ry * ny + rz * nz) / nn
+            if v >= 0.0 and w >= 0.0 and v + w <= 1.0:
+                d = abs(apx * nx + apy * ny + apz * nz) / np.sqrt(nn)
+        if d == np.inf:
+            for k in range(3):
+                ox, oy, oz = T[j, k, 0], T[j, k, 1], T[j, k, 2]
+                ex = T[j, (k + 1) % 3, 0] - ox
+                ey = T[j, (k + 1) % 3, 1] - oy
+                ez = T[j, (k + 1) % 3, 2] - oz
+                ee = ex * ex + ey * ey + ez * ez
+                sx, sy, sz = px - ox, py - oy, pz - oz
+                u = 0.0
+                if ee > 0.0:
+                    u = (sx * ex + sy * ey + sz * ez) / ee
+                    u = min(1.0, max(0.0, u))
+                dx, dy, dz = sx - u * ex, sy - u * ey, sz - u * ez
+                dd = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if dd < d:
+                    d = dd
+        return d
+
     @numba.njit(cache=True, fastmath=False)
     def _min_dist_kernel(P: np.ndarray, T: np.ndarray) -> np.ndarray:  # pragma: no cover
         n, m = P.shape[0], T.shape[0]
         out = np.empty(n)
         for i in range(n):
             best = np.inf
-            px, py, pz = P[i, 0], P[i, 1], P[i, 2]
             for j in range(m):
-                ax, ay, az = T[j, 0, 0], T[j, 0, 1], T[j, 0, 2]
-                bx, by, bz = T[j, 1, 0], T[j, 1, 1], T[j, 1, 2]
-                cx, cy, cz = T[j, 2, 0], T[j, 2, 1], T[j, 2, 2]
-                abx, aby, abz = bx - ax, by - ay, bz - az
-                acx, acy, acz = cx - ax, cy - ay, cz - az
-                nx = aby * acz - abz * acy
-                ny = abz * acx - abx * acz
-                nz = abx * acy - aby * acx
-                nn = nx * nx + ny * ny + nz * nz
-                apx, apy, apz = px - ax, py - ay, pz - az
-                d = np.inf
-                if nn > 0.0:
-                    # barycentric (v, w) of the projection
-                    qx = apy * acz - apz * acy
-                    qy = apz * acx - apx * acz
-                    qz = apx * acy - apy * acx
-                    v = (qx * nx + qy * ny + qz * nz) / nn
-                    rx = aby * apz - abz * apy
-                    ry = abz * apx - abx * apz
-                    rz = abx * apy - aby * apx
-                    w = (rx * nx + ry * ny + rz * nz) / nn
-                    if v >= 0.0 and w >= 0.0 and v + w <= 1.0:
-                        d = abs(apx * nx + apy * ny + apz * nz) / np.sqrt(nn)
-                if d == np.inf:
-                    for k in range(3):
-                        ox, oy, oz = T[j, k, 0], T[j, k, 1], T[j, k, 2]
-                        ex = T[j, (k + 1) % 3, 0] - ox
-                        ey = T[j, (k + 1) % 3, 1] - oy
-                        ez = T[j, (k + 1) % 3, 2] - oz
-                        ee = ex * ex + ey * ey + ez * ez
-                        sx, sy, sz = px - ox, py - oy, pz - oz
-                        u = 0.0
-                        if ee > 0.0:
-                            u = (sx * ex + sy * ey + sz * ez) / ee
-                            u = min(1.0, max(0.0, u))
-                        dx, dy, dz = sx - u * ex, sy - u * ey, sz - u * ez
-                        dd = np.sqrt(dx * dx + dy * dy + dz * dz)
-                        if dd < d:
-                            d = dd
+                d = _tri_dist(P[i, 0], P[i, 1], P[i, 2], T, j)
+                if d < best:
+                    best = d
+            out[i] = best
+        return out
+
+    @numba.njit(cache=True, fastmath=False)
+    def _face_dist_kernel(P: np.ndarray, faces: np.ndarray, start: np.ndarray,
+                          count: np.ndarray, tri_index: np.ndarray,
+                          T: np.ndarray) -> np.ndarray:  # pragma: no cover
+        """Distance from each point ``P[i]`` to the triangles of its face ``faces[i]``."""
+        n = P.shape[0]
+        out = np.empty(n)
+        for i in range(n):
+            best = np.inf
+            f = faces[i]
+            for r in range(start[f], start[f] + count[f]):
+                d = _tri_dist(P[i, 0], P[i, 1], P[i, 2], T, tri_index[r])
                 if d < best:
                     best = d
             out[i] = best
@@ -336,6 +359,7 @@ class Polyhedron:
         self._samples: Dict[float, np.ndarray] = {}
         self._vertex_edge_table: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
         self._vertex_face_table: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+        self._face_tri_table: Optional[tuple] = None
 
     def vertex_edge_table(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """
@@ -399,6 +423,35 @@ class Polyhedron:
     def face_distance(self, face: int, points: np.ndarray) -> np.ndarray:
         """Distance [m] from points (N, 3) to the planar region of ``face`` (not its plane)."""
         return min_triangle_distance(points, self._face_tris[face])
+
+    def faces_distance(self, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """
+        Distance [m] from each point to the planar region of its own face.
+
+        ``faces_distance(faces, points)[i] == face_distance(faces[i], points[i:i + 1])[0]``
+        (the same arithmetic), for many faces in one call.
+
+        :param faces: face index per point, shape (N,).
+        :param points: query points [m], shape (N, 3).
+        :returns: distances [m], shape (N,).
+        """
+        faces = np.asarray(faces, dtype=np.int64).reshape(-1)
+        P = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+        if not _HAVE_NUMBA:
+            out = np.empty(len(P))
+            for f in np.unique(faces):
+                sel = faces == f
+                out[sel] = self.face_distance(int(f), P[sel])
+            return out
+        if self._face_tri_table is None:
+            count = np.array([len(t) for t in self.face_triangles], dtype=np.int64)
+            start = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+            index = np.concatenate(self.face_triangles).astype(np.int64) if len(count) \
+                else np.zeros(0, dtype=np.int64)
+            self._face_tri_table = (start, count, index,
+                                    np.ascontiguousarray(self.tri_corners, dtype=float))
+        start, count, index, tris = self._face_tri_table
+        return _face_dist_kernel(P, faces, start, count, index, tris)
 
     def face_point(self, face: int) -> np.ndarray:
         """Return a point [m] on ``face`` (its first triangle's first corner)."""
