@@ -261,17 +261,22 @@ def off_element_distance(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarra
     out = np.zeros(len(pairs))
     R, t = T_rel[:3, :3], T_rel[:3, 3]
     T_inv = invert_transform(T_rel)
+    # projections gathered per solid, their face distances measured in one call each
+    proj: Tuple[Tuple[list, list, list], Tuple[list, list, list]] = (([], [], []),
+                                                                     ([], [], []))
     for k, p in enumerate(pairs):
         if p.moving_type == VERTEX and p.fixed_type == FACE:
             x = R @ moving.vertices[p.moving_index] + t
             n = fixed.face_normals[p.fixed_index]
             q = x - (n @ x - fixed.face_offsets[p.fixed_index]) * n
-            out[k] = fixed.face_distance(p.fixed_index, q[None])[0]
+            for lst, v in zip(proj[0], (k, p.fixed_index, q)):
+                lst.append(v)
         elif p.moving_type == FACE and p.fixed_type == VERTEX:
             w = T_inv[:3, :3] @ fixed.vertices[p.fixed_index] + T_inv[:3, 3]
             n = moving.face_normals[p.moving_index]
             q = w - (n @ w - moving.face_offsets[p.moving_index]) * n
-            out[k] = moving.face_distance(p.moving_index, q[None])[0]
+            for lst, v in zip(proj[1], (k, p.moving_index, q)):
+                lst.append(v)
         elif p.moving_type == EDGE and p.fixed_type == EDGE:
             a = R @ moving.vertices[moving.edge_vertices[p.moving_index, 0]] + t
             em = R @ moving.edge_directions[p.moving_index]
@@ -285,6 +290,9 @@ def off_element_distance(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarra
             Lm = moving.edge_lengths[p.moving_index]
             Lf = fixed.edge_lengths[p.fixed_index]
             out[k] = max(0.0, -sm, sm - Lm, -sf, sf - Lf)
+    for (ks, faces, qs), solid in zip(proj, (fixed, moving)):
+        if ks:
+            out[ks] = solid.faces_distance(np.array(faces), np.array(qs))
     return out
 
 
