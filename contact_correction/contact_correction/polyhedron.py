@@ -190,26 +190,51 @@ try:  # compiled kernels for the per-frame queries; the numpy versions above are
             out[i] = best
         return out
 
+    @numba.njit(cache=True, fastmath=False, inline='always')
+    def _winding_at(px: float, py: float, pz: float,
+                    T: np.ndarray) -> float:  # pragma: no cover
+        """Winding number of the triangles ``T`` (M, 3, 3) at the point (px, py, pz)."""
+        acc = 0.0
+        for j in range(T.shape[0]):
+            ax, ay, az = T[j, 0, 0] - px, T[j, 0, 1] - py, T[j, 0, 2] - pz
+            bx, by, bz = T[j, 1, 0] - px, T[j, 1, 1] - py, T[j, 1, 2] - pz
+            cx, cy, cz = T[j, 2, 0] - px, T[j, 2, 1] - py, T[j, 2, 2] - pz
+            la = np.sqrt(ax * ax + ay * ay + az * az)
+            lb = np.sqrt(bx * bx + by * by + bz * bz)
+            lc = np.sqrt(cx * cx + cy * cy + cz * cz)
+            det = (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
+                   + az * (bx * cy - by * cx))
+            den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
+                   + (ax * cx + ay * cy + az * cz) * lb + (bx * cx + by * cy + bz * cz) * la)
+            acc += 2.0 * np.arctan2(det, den)
+        return acc / (4.0 * np.pi)
+
     @numba.njit(cache=True, fastmath=False)
     def _winding_kernel(P: np.ndarray, T: np.ndarray) -> np.ndarray:  # pragma: no cover
-        n, m = P.shape[0], T.shape[0]
+        n = P.shape[0]
         out = np.empty(n)
         for i in range(n):
-            acc = 0.0
-            for j in range(m):
-                ax, ay, az = T[j, 0, 0] - P[i, 0], T[j, 0, 1] - P[i, 1], T[j, 0, 2] - P[i, 2]
-                bx, by, bz = T[j, 1, 0] - P[i, 0], T[j, 1, 1] - P[i, 1], T[j, 1, 2] - P[i, 2]
-                cx, cy, cz = T[j, 2, 0] - P[i, 0], T[j, 2, 1] - P[i, 1], T[j, 2, 2] - P[i, 2]
-                la = np.sqrt(ax * ax + ay * ay + az * az)
-                lb = np.sqrt(bx * bx + by * by + bz * bz)
-                lc = np.sqrt(cx * cx + cy * cy + cz * cz)
-                det = (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
-                       + az * (bx * cy - by * cx))
-                den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
-                       + (ax * cx + ay * cy + az * cz) * lb + (bx * cx + by * cy + bz * cz) * la)
-                acc += 2.0 * np.arctan2(det, den)
-            out[i] = acc / (4.0 * np.pi)
+            out[i] = _winding_at(P[i, 0], P[i, 1], P[i, 2], T)
         return out
+
+    @numba.njit(cache=True, fastmath=False)
+    def _depth_kernel(P: np.ndarray, lo: np.ndarray, hi: np.ndarray, T: np.ndarray,
+                      threshold: float) -> float:  # pragma: no cover
+        """Deepest of the points inside the box and the surface ``T`` (winding > threshold)."""
+        depth = 0.0
+        for i in range(P.shape[0]):
+            px, py, pz = P[i, 0], P[i, 1], P[i, 2]
+            if not (lo[0] <= px <= hi[0] and lo[1] <= py <= hi[1] and lo[2] <= pz <= hi[2]):
+                continue
+            if _winding_at(px, py, pz, T) > threshold:
+                best = np.inf
+                for j in range(T.shape[0]):
+                    d = _tri_dist(px, py, pz, T, j)
+                    if d < best:
+                        best = d
+                if best > depth:
+                    depth = best
+        return depth
 
     _HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - numba is in the environment; keep working without it
@@ -452,6 +477,28 @@ class Polyhedron:
                                     np.ascontiguousarray(self.tri_corners, dtype=float))
         start, count, index, tris = self._face_tri_table
         return _face_dist_kernel(P, faces, start, count, index, tris)
+
+    def penetration_of(self, points: np.ndarray, threshold: float) -> float:
+        """
+        Return the largest distance [m] to the surface of the points inside the solid, or 0.
+
+        A point is inside when it lies in the bounding box and the winding number there
+        exceeds ``threshold``; the same tests and values as ``in_bbox``, :meth:`contains`
+        and :meth:`distance_to_surface` (one compiled pass).
+
+        :param points: query points [m], shape (N, 3).
+        """
+        P = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+        if not _HAVE_NUMBA or len(self.tri_corners) == 0:
+            P = P[self.in_bbox(P)]
+            if len(P) == 0:
+                return 0.0
+            inside = self.contains(P) > threshold
+            return float(self.distance_to_surface(P[inside]).max()) if np.any(inside) \
+                else 0.0
+        return float(_depth_kernel(P, self.bbox_min, self.bbox_max,
+                                   np.ascontiguousarray(self.tri_corners, dtype=float),
+                                   float(threshold)))
 
     def face_point(self, face: int) -> np.ndarray:
         """Return a point [m] on ``face`` (its first triangle's first corner)."""
