@@ -49,6 +49,7 @@ from .contact_relation import (
     ContactEvaluator, ContactGeometry, ContactPair, EDGE, evaluate_contacts, FACE, VERTEX)
 from .nonlinear_correction import constraint_rows
 from .polyhedron import cross3, Polyhedron
+from .small_linalg import svd
 
 __all__ = [
     'ConstraintDirections',
@@ -128,7 +129,7 @@ def _orth_split(M: np.ndarray, tol: float) -> Tuple[np.ndarray, np.ndarray]:
     """Orthonormal bases (rows) of the row space and of the null space of ``M`` (., 3)."""
     if M.size == 0:
         return np.zeros((0, 3)), np.eye(3)
-    _, s, Vt = np.linalg.svd(M)
+    _, s, Vt = svd(M)
     r = int(np.sum(s > tol * max(1.0, s[0] if len(s) else 1.0)))
     return Vt[:r], Vt[r:]
 
@@ -149,7 +150,7 @@ def rotational_constraint(A: np.ndarray, length_scale: float = 1.0,
     if len(A) == 0:
         return np.zeros((0, 3))
     A0, A1 = A[:, :3] / length_scale, A[:, 3:]
-    U, s, _ = np.linalg.svd(A1, full_matrices=False)
+    U, s, _ = svd(A1, full_matrices=False)
     U1 = U[:, s > tol]
     G = A0 - U1 @ (U1.T @ A0)
     g, _ = _orth_split(G, tol)
@@ -165,7 +166,7 @@ def rotational_constraint_rank(A: np.ndarray, length_scale: float = 1.0,
 def scaled_singular_values(A: np.ndarray, length_scale: float = 1.0) -> np.ndarray:
     """Singular values of Eq. 2's matrix ``A`` (K, 6), rotation columns / ``length_scale``."""
     A = np.asarray(A, dtype=float).reshape(-1, 6)
-    return np.linalg.svd(np.hstack([A[:, :3] / length_scale, A[:, 3:]]), compute_uv=False)
+    return svd(np.hstack([A[:, :3] / length_scale, A[:, 3:]]), compute_uv=False)
 
 
 def constraint_directions(A: np.ndarray, length_scale: float = 1.0,
@@ -332,7 +333,7 @@ def optimal_orientation_numerical(moving: Polyhedron, fixed: Polyhedron, T_rel_E
 def _line_fit(points: np.ndarray, tol: float) -> Optional[Tuple[np.ndarray, np.ndarray]]:
     """(point, unit direction) of the line through ``points`` if they are collinear."""
     c = points.mean(0)
-    _, s, Vt = np.linalg.svd(points - c)
+    _, s, Vt = svd(points - c)
     if len(points) < 2 or s[0] < tol or (len(s) > 1 and s[1] > tol):
         return None
     return c, Vt[0]
@@ -408,7 +409,7 @@ def optimal_translation(moving: Polyhedron, fixed: Polyhedron, R_opt: np.ndarray
     T[:3, :3], T[:3, 3] = R_opt, t_E
     g = evaluate_contacts(moving, fixed, T, pairs)
     F = g.normals
-    U, s, Vt = np.linalg.svd(F, full_matrices=False)
+    U, s, Vt = svd(F, full_matrices=False)
     keep = s > tol * max(1.0, s[0])
     # pseudo-inverse restricted to the well-determined directions
     dt = -(Vt[keep].T @ ((U[:, keep].T @ g.distances) / s[keep]))

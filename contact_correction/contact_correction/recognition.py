@@ -49,6 +49,7 @@ import numpy as np
 from .contact_relation import (
     ContactPair, detect_contact_relation, EDGE, evaluate_contacts, FACE, relative_pose, VERTEX)
 from .polyhedron import cross3, Polyhedron
+from .small_linalg import eigvalsh, solve
 
 __all__ = ['RecognitionOptions', 'Hypothesis', 'FrameCandidates', 'RelationRecognizer',
            'RelationTracker', 'recognise_track', 'group_key', 'common_state']
@@ -215,22 +216,6 @@ class FrameCandidates:
 EXIT_SLACK = 0.5
 
 _EYE6 = np.eye(6)
-
-try:    # the gufuncs np.linalg.eigvalsh / solve call (the same LAPACK calls, without the
-    # per-call type dispatch: the scorer solves thousands of 6x6 systems per track)
-    from numpy.linalg import _umath_linalg
-
-    def _eigvalsh(a: np.ndarray) -> np.ndarray:
-        """Return np.linalg.eigvalsh(a) of a real (6, 6) float64 matrix."""
-        return _umath_linalg.eigvalsh_lo(a, signature='d->d')
-
-    def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Return np.linalg.solve(a, b) for a non-singular float64 (6, 6) ``a``, (6,) ``b``."""
-        return _umath_linalg.solve1(a, b, signature='dd->d')
-
-    _eigvalsh(np.eye(2)), _solve(np.eye(2), np.ones(2))
-except (ImportError, AttributeError, TypeError):  # pragma: no cover - other numpy versions
-    _eigvalsh, _solve = np.linalg.eigvalsh, np.linalg.solve
 
 #: chi2 by which a relation with fewer constraints must explain a frame better than the chosen
 #: one to make it ambiguous (the data favour it, only the priors do not)
@@ -537,7 +522,7 @@ class RelationRecognizer:
             dd += gdd
             Nc += gNc
         if state:
-            w = _eigvalsh(Nc)
+            w = eigvalsh(Nc)
             rank = int(np.count_nonzero(w > 1e-4 * max(w[-1], 1e-300)))
         else:
             rank = 0
@@ -550,7 +535,7 @@ class RelationRecognizer:
             if not active.any():
                 chi2, delta = 0.0, np.zeros(6)
             else:
-                y = _solve(N + s2I, b)
+                y = solve(N + s2I, b)
                 chi2 = float(max(dd - b @ y, 0.0) / s2)
                 delta = -y
             r = d + A @ delta
