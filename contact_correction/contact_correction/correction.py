@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import time
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 from stereo_manip_tools.transforms import check_transform, rotation_log
@@ -108,6 +108,25 @@ def _near_degenerate(A: np.ndarray, length_scale: float, lo: float = 1e-9,
     return bool(np.any((r > lo) & (r < hi)))
 
 
+#: poses that passed check_transform lately (their bytes): a track's fixed pose, and the
+#: observation tried again by the fallbacks of one frame, are checked once
+_VALID_POSES: Dict[bytes, None] = {}
+
+
+def _checked_transform(T: np.ndarray, name: str) -> np.ndarray:
+    """Return ``check_transform(T, name)``, remembering the last few valid poses."""
+    A = np.asarray(T, dtype=float)
+    key = A.tobytes() if A.shape == (4, 4) else None
+    if key is not None and key in _VALID_POSES:
+        return A
+    A = check_transform(T, name)
+    if key is not None:
+        if len(_VALID_POSES) >= 8:
+            _VALID_POSES.clear()
+        _VALID_POSES[key] = None
+    return A
+
+
 def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                  T_fixed: np.ndarray, pairs: Optional[Sequence[ContactPair]] = None, *,
                  optimal: bool = True, tolerance: float = 2e-3,
@@ -165,8 +184,8 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         return res
 
     try:
-        Tm = check_transform(T_moving, 'moving pose')
-        Tf = check_transform(T_fixed, 'fixed pose')
+        Tm = _checked_transform(T_moving, 'moving pose')
+        Tf = _checked_transform(T_fixed, 'fixed pose')
     except ValueError as exc:
         return passthrough(f'invalid input: {exc}')
     T_rel_E = relative_pose(Tm, Tf)

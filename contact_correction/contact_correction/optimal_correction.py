@@ -407,7 +407,8 @@ def optimal_translation(moving: Polyhedron, fixed: Polyhedron, R_opt: np.ndarray
     t_E = np.asarray(t_observed, dtype=float).reshape(3)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R_opt, t_E
-    g = evaluate_contacts(moving, fixed, T, pairs)
+    evaluate = ContactEvaluator(moving, fixed, pairs)
+    g = evaluate(T)
     F = g.normals
     U, s, Vt = svd(F, full_matrices=False)
     keep = s > tol * max(1.0, s[0])
@@ -415,7 +416,7 @@ def optimal_translation(moving: Polyhedron, fixed: Polyhedron, R_opt: np.ndarray
     dt = -(Vt[keep].T @ ((U[:, keep].T @ g.distances) / s[keep]))
     t = t_E + dt
     T[:3, 3] = t
-    res = float(np.max(np.abs(evaluate_contacts(moving, fixed, T, pairs).distances)))
+    res = float(np.max(np.abs(evaluate(T).distances)))
     return t, res, _orth_split(F, tol)[1] if free_directions else None
 
 
