@@ -71,7 +71,7 @@ def pct(x) -> Dict[str, float]:
 
 
 def key(r) -> tuple:
-    """The fields of a CorrectionResult compared exactly: relation, status, flags."""
+    """Return the fields of a CorrectionResult compared exactly: relation, status, flags."""
     return ([(p.moving_type, p.moving_index, p.fixed_type, p.fixed_index, p.sign)
              for p in r.pairs], r.status, bool(r.corrected), bool(r.guarded),
             r.relation_source, r.method)
