@@ -26,7 +26,7 @@ from .contact_relation import ContactEvaluator, ContactPair
 from .polyhedron import cross3, Polyhedron
 
 __all__ = ['NonlinearResult', 'correct_nonlinear', 'apply_screw', 'constraint_rows',
-           'RESIDUAL_TOLERANCE']
+           'warm_up', 'RESIDUAL_TOLERANCE']
 
 #: The one contact residual tolerance [m] of the package: the non-linear step stops there and
 #: every later check (optimal step, acceptance in correct_pose) uses the same value.
@@ -228,6 +228,21 @@ try:  # the compiled iteration (same steps as the Python loop below, which stays
     _HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - numba is in the environment
     _HAVE_NUMBA = False
+
+
+def warm_up() -> None:
+    """
+    Compile the iteration now (or load it from numba's disk cache).
+
+    With a cold cache the first compiled call costs ~30 s CPU (once per source tree: the
+    bootstrap calls this after a build), loading it from the cache ~0.1 s.
+    """
+    if not _HAVE_NUMBA:
+        return
+    z3, z1, i0 = np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64)
+    _iterate(np.eye(4), 1, np.zeros(1, dtype=np.int64), np.zeros((1, 3)),
+             np.array([[0.0, 0.0, 1.0]]), np.array([-1e-3]), i0, z3, z3, z1, i0, z3, z3, z3,
+             z3, z1, 0.1, np.array([3e-2, 0.0]), 5, 1e-9, 1e-6)
 
 
 def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.ndarray,
