@@ -236,7 +236,9 @@ def test_installed_executable_serves_and_streams(ros_node):
                           ros_args=['-p', 'target_rms:=0.0005', '-p', 'mesh_resolution:=32',
                                     '-p', 'nice:=5'],
                           observer=ros_node, wait_for_node='ip_modeler', timeout=60) as proc:
-        # its own, lower scheduling priority (the executable is the node's process)
+        # its own, lower scheduling priority (the executable is the node's process; the node
+        # joins the graph before it lowers its priority, and logs after)
+        assert proc.wait_for_output('nice', 30), proc.output()
         own = os.getpriority(os.PRIO_PROCESS, 0)
         assert os.getpriority(os.PRIO_PROCESS, proc.process.pid) == min(own + 5, 19)
         res = _call(ros_node, None, FitImplicitPolynomial.Request(cloud=cloud))
