@@ -415,6 +415,33 @@ def _range_image(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[
     return nearest_depth_image(points, pixel, lo, shape)
 
 
+def _fill_single_holes(image: np.ndarray, shape: Tuple[int, int]) -> np.ndarray:
+    """
+    Fill the single-pixel holes of a flat range image (``shape`` rows x columns).
+
+    A NaN pixel between two observed ones (left and right, or above and below) takes the nearer
+    of the pair's depths [m]. An unorganised cloud (points scattered at random over the
+    surfaces, e.g. a resampled or merged cloud) leaves about a tenth of the pixels of an image
+    sized at 1.5 x its mean spacing empty by chance (Poisson): unfilled, these counted as
+    unobserved surface, and the true pose of the process tests' peg scored an inlier
+    fraction of 0.78-0.83 (under the acquisition's 0.85; filled: 0.95-0.97). A region
+    the sensor did not observe (a void beyond a part's end, a stereo hole) is wider than one
+    pixel and stays empty.
+    """
+    img = image.reshape(shape)
+    out = img.copy()
+    with np.errstate(invalid='ignore'):
+        fill = np.full(shape, np.nan)
+        fill[:, 1:-1] = np.where(np.isfinite(img[:, :-2]) & np.isfinite(img[:, 2:]),
+                                 np.minimum(img[:, :-2], img[:, 2:]), np.nan)
+        fill[1:-1, :] = np.fmin(fill[1:-1, :], np.where(
+            np.isfinite(img[:-2, :]) & np.isfinite(img[2:, :]),
+            np.minimum(img[:-2, :], img[2:, :]), np.nan))
+    hole = ~np.isfinite(img)
+    out[hole] = fill[hole]
+    return out.ravel()
+
+
 def _pixels(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[int, int]
             ) -> Tuple[np.ndarray, np.ndarray]:
     u = np.floor((points[:, 0] / points[:, 2] - lo[0]) / pixel).astype(np.int64)
@@ -529,7 +556,7 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
     if shape[0] * shape[1] > 4_000_000:
         q.reason = 'scene too sparse on the object to verify'
         return q
-    observed = _range_image(inside, pixel, lo, shape)
+    observed = _fill_single_holes(_range_image(inside, pixel, lo, shape), shape)
     own = _range_image(P, pixel, lo, shape)
     idx, ok = _pixels(P, pixel, lo, shape)
     idx = np.where(ok, idx, 0)
@@ -719,6 +746,10 @@ class ObjectTracker:
     hint: Optional[np.ndarray] = None
     reference: Optional[np.ndarray] = None     # the last known pose (hint or before a loss)
     twins: list = field(default_factory=list)  # trackers of parts with the same shape
+    #: the distinct places (pose, quality) that passed the check in the last global search
+    places: list = field(default_factory=list)
+    #: the track was named among identical parts by stale known poses, not decisively
+    naming_uncertain: bool = False
     lost_count: int = 0
     acquisitions: int = 0
     _last_check_ns: Optional[int] = None
@@ -737,6 +768,7 @@ class ObjectTracker:
         self.hint = None if pose is None else np.asarray(pose, dtype=float).copy()
         self.reference = self.hint
         self.state = TrackState.ACQUIRING
+        self.naming_uncertain = False
         self._last_check_ns = None
         self._lost_ns = None
 
@@ -846,6 +878,7 @@ class ObjectTracker:
         """Try a hint or a recent last pose first (verified), else the global search."""
         s = self.settings
         hint_reason = prefix
+        self.places = []
         if self.hint is not None:
             hint, self.hint = self.hint, None
             pose, q = self._refine_and_check(scene, hint, None, acquisition=True)
@@ -883,6 +916,7 @@ class ObjectTracker:
             if all(symmetric_distance(self.model, pose, d[0]) > s.ambiguity_distance
                    for d in distinct):
                 distinct.append((pose, q))
+        self.places = list(distinct)
         # a twin verified in this cloud already took its place (the penetration check keeps
         # this part out of it): only unverified twins make the acquisition ambiguous
         verified_models = [id(m) for m, _ in self._others]
