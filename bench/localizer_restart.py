@@ -80,7 +80,7 @@ def main() -> None:
     stream = subprocess.Popen([sys.executable, str(PEER)], stdout=subprocess.DEVNULL,
                               stderr=subprocess.STDOUT)
     try:
-        assert spin_until(node, lambda: len(truths) > 5, 60), 'producer did not stream'
+        assert spin_until(node, lambda: len(truths) > 5, 180), 'producer did not stream'
         for k in range(args.restarts + 1):
             t0 = time.monotonic()
             proc = ExecutableProcess('object_localizer', 'object_localizer_node',
@@ -109,7 +109,7 @@ def main() -> None:
                                       stderr=subprocess.STDOUT)
             # timed from the producer's first cloud (its own start-up precomputes the clouds)
             n_truth = len(truths)
-            assert spin_until(node, lambda: len(truths) > n_truth, 60), 'producer silent'
+            assert spin_until(node, lambda: len(truths) > n_truth, 180), 'producer silent'
             t0 = time.monotonic()
             stats = {}
             elapsed, err = first_pose(node, poses, truths, t0, points, proc=proc, stats=stats)

@@ -141,6 +141,13 @@ class ObjectLocalizerNode(Node):
                                _float('after a loss, for this long [s of cloud stamps] the '
                                       'search first refines the last verified pose (0: off)',
                                       0.0, 60.0))
+        self.declare_parameter('publish_uncertain_naming', True, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description='identical parts left ambiguous by stale known poses are named by the '
+                        'assignment nearest those poses also when it is not decisive (cost not '
+                        'below half the next one): the poses are published with the status '
+                        'state ACQUIRING and the reason "naming uncertain" (the parts may be '
+                        'swapped); false: such parts get no pose'))
         self.declare_parameter('segment_margin', 0.005,
                                _float('margin around the model box for objects/<name>/cloud [m]',
                                       0.0, 0.1))
@@ -306,7 +313,9 @@ class ObjectLocalizerNode(Node):
             if all(n in deferred for n in group):
                 t0 = time.process_time()
                 with self._settings_lock:
-                    named = name_identical_parts([self.trackers[n] for n in group], stamp)
+                    named = name_identical_parts(
+                        [self.trackers[n] for n in group], stamp,
+                        self.get_parameter('publish_uncertain_naming').value)
                 for k, result in named.items():
                     first = deferred[group[k]]
                     result.cpu_seconds = first.cpu_seconds + \

@@ -100,8 +100,8 @@ def _clusters(model, places: list, depth: float) -> List[List[int]]:
     return list(groups.values())
 
 
-def name_identical_parts(group: Sequence[ObjectTracker], stamp_ns: int
-                         ) -> Dict[int, TrackUpdate]:
+def name_identical_parts(group: Sequence[ObjectTracker], stamp_ns: int,
+                         accept_uncertain: bool = True) -> Dict[int, TrackUpdate]:
     """
     Name a group of identical parts, none verified in this cloud, from the places found.
 
@@ -115,6 +115,8 @@ def name_identical_parts(group: Sequence[ObjectTracker], stamp_ns: int
     :param group: trackers of parts with the same shape; each searched this cloud (its
         ``places``) and has a known pose (``known_pose()``: hint or last verified pose).
     :param stamp_ns: the cloud's stamp [ns].
+    :param accept_uncertain: name the parts also when the assignment is not decisive (flagged
+        ``naming_uncertain``); False: then nothing is named.
     :return: ``{index in group: TrackUpdate}`` for the parts started at a place (state
         TRACKING, or STATIC for static parts); empty when nothing could be named. The trackers
         of the parts named are started (as by their own acquisition), and their
@@ -141,6 +143,8 @@ def name_identical_parts(group: Sequence[ObjectTracker], stamp_ns: int
     best_cost, best = options[0]
     next_cost = options[1][0] if len(options) > 1 else float('inf')
     certain = best_cost < 0.5 * next_cost
+    if not certain and not accept_uncertain:
+        return {}
     names = ', '.join(t.model.name for t in group)
     how = (f'named among the identical parts {names} by the assignment to {len(places)} '
            f'verified places nearest their known poses (summed {1e3 * best_cost:.0f} mm; next '

@@ -435,6 +435,11 @@ def test_hints_that_decide_nothing_give_poses_flagged_uncertain():
     middle = 0.5 * (truth['link_base'][:3, 3] + truth['link_arm'][:3, 3])
     halfway = {n: make_transform(T[:3, :3], middle) for n, T in truth.items()}
     trackers = _hinted_twin_trackers(models, both_bricks, halfway)
+    for t in trackers.values():
+        t.update(cloud, 0, [])
+    assert name_identical_parts(list(trackers.values()), 0, accept_uncertain=False) == {}
+    assert all(t.state == TrackState.ACQUIRING for t in trackers.values())
+    trackers = _hinted_twin_trackers(models, both_bricks, halfway)
     named = _search_then_name(trackers, cloud)
     assert set(named) == set(trackers)
     on = set()
