@@ -18,13 +18,16 @@ from __future__ import annotations
 
 from dataclasses import replace
 import threading
+import time
 from typing import Dict, List
 
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
+from object_localizer import lean_open3d  # noqa: F401 (before Open3D is imported)
 from object_localizer.acquisition import prepare_acquisition_model
 from object_localizer.conversions import cloud_xyz, track_status
+from object_localizer.naming import identical_groups, name_identical_parts
 from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
     same_shape, SceneCloud, TrackerSettings, TrackState, TrackUpdate
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
@@ -41,6 +44,7 @@ from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.parameters import float_descriptor as _float, INPUT_QOS_CHOICES, \
     input_qos_descriptor, input_qos_profile, int_descriptor, reject_nonfinite_parameters, \
     string_descriptor
+from stereo_manip_tools.processes import process_age_seconds
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
     spin_until_shutdown
 from stereo_manip_tools.tf import PoseTfPublisher
@@ -72,6 +76,9 @@ class ObjectLocalizerNode(Node):
     }
 
     def __init__(self, **kwargs) -> None:
+        # start-up time line [s of time.monotonic()]: logged once with the first pose
+        now = time.monotonic()
+        self._startup = {'process start': now - process_age_seconds(), 'node': now}
         super().__init__('object_localizer', **kwargs)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         reject_nonfinite_parameters(self)
@@ -135,6 +142,13 @@ class ObjectLocalizerNode(Node):
                                _float('after a loss, for this long [s of cloud stamps] the '
                                       'search first refines the last verified pose (0: off)',
                                       0.0, 60.0))
+        self.declare_parameter('publish_uncertain_naming', False, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description='identical parts left ambiguous by stale known poses are named by the '
+                        'assignment nearest those poses also when it is not decisive (cost not '
+                        'below half the next one): the poses are published with the status '
+                        'state ACQUIRING and the reason "naming uncertain" (the parts may be '
+                        'swapped); false (default): such parts get no pose'))
         self.declare_parameter('segment_margin', 0.005,
                                _float('margin around the model box for objects/<name>/cloud [m]',
                                       0.0, 0.1))
@@ -161,6 +175,7 @@ class ObjectLocalizerNode(Node):
             raise ValueError(f'initial_poses has {len(initial)} numbers; expected 7 per model '
                              f'({7 * len(names)} for {names})')
         acquirer = make_acquirer(self.get_parameter('acquisition_method').value)
+        self._startup['parameters'] = time.monotonic()
         self.trackers: Dict[str, ObjectTracker] = {}
         self.pose_pubs, self.status_pubs, self.track_pubs, self.cloud_pubs = {}, {}, {}, {}
         for k, name in enumerate(names):
@@ -179,6 +194,7 @@ class ObjectLocalizerNode(Node):
             self.track_pubs[name] = self.create_publisher(Path, f'objects/{name}/track', 10)
             self.cloud_pubs[name] = self.create_publisher(PointCloud2, f'objects/{name}/cloud',
                                                           10)
+        self._startup['models'] = time.monotonic()
         for name, tracker in self.trackers.items():
             tracker.twins = [t for n, t in self.trackers.items()
                              if n != name and same_shape(tracker.model, t.model)]
@@ -187,6 +203,7 @@ class ObjectLocalizerNode(Node):
                 self.get_logger().info(
                     f'{name} has the same shape as {twins}: it is acquired only near a known '
                     'pose (initial_poses or the last one)')
+        self._groups = identical_groups(self.trackers)
         # static objects first: the others are checked against their verified poses
         self._order = sorted(names, key=lambda n: n not in static)
         self.counts = {'received': 0, 'processed': 0, 'dropped_stale': 0, 'rejected': 0,
@@ -207,6 +224,7 @@ class ObjectLocalizerNode(Node):
             + (f' ({", ".join(static)} static)' if static else '')
             + ('; initial poses are hints, verified before use' if initial is not None else ''))
         self.diagnostics = NodeDiagnostics(self, self.counts)  # /diagnostics: topics, counters
+        self._startup['subscribed'] = time.monotonic()
 
     def _settings(self) -> TrackerSettings:
         return TrackerSettings(**{field: self.get_parameter(name).value
@@ -229,6 +247,7 @@ class ObjectLocalizerNode(Node):
         return SetParametersResult(successful=True)
 
     def _on_cloud(self, msg: PointCloud2) -> None:
+        self._startup.setdefault('first cloud', time.monotonic())
         with self._lock:
             self.counts['received'] += 1
             if self._worker.put(msg):
@@ -244,6 +263,7 @@ class ObjectLocalizerNode(Node):
             self.get_logger().error(f'cloud not processed: {type(exc).__name__}: {exc}')
 
     def _process(self, msg: PointCloud2) -> None:
+        self._startup.setdefault('first cloud taken', time.monotonic())
         try:
             scene = SceneCloud(cloud_xyz(msg, self.get_parameter('max_points').value,
                                          self.get_parameter('voxel_size').value))
@@ -272,6 +292,10 @@ class ObjectLocalizerNode(Node):
                 lost[name] = result      # searched for below, in this cloud
                 continue
             self._publish(name, result, msg, scene, verified)
+        # identical parts left unnamed by their own searches (every place they found is far
+        # from their stale known poses) are named together after the others
+        in_group = {n for g in self._groups for n in g}
+        deferred: Dict[str, TrackUpdate] = {}
         for name in searching + [n for n in self._order if n in lost]:
             with self._settings_lock:
                 result = self.trackers[name].update(scene, stamp, verified)
@@ -282,13 +306,34 @@ class ObjectLocalizerNode(Node):
                 result.cpu_seconds += first.cpu_seconds
                 if result.quality is None:
                     result.quality = first.quality
+            if name in in_group and result.pose is None and self.trackers[name].places:
+                deferred[name] = result
+                continue
             self._publish(name, result, msg, scene, verified)
+        for group in self._groups:
+            if all(n in deferred for n in group):
+                t0 = time.process_time()
+                with self._settings_lock:
+                    named = name_identical_parts(
+                        [self.trackers[n] for n in group], stamp,
+                        self.get_parameter('publish_uncertain_naming').value)
+                for k, result in named.items():
+                    first = deferred[group[k]]
+                    result.cpu_seconds = first.cpu_seconds + \
+                        (time.process_time() - t0) / len(named)
+                    result.reason = f'{first.reason}; then {result.reason}'
+                    result.lost = first.lost
+                    deferred[group[k]] = result
+        for name in [n for n in self._order if n in deferred]:
+            self._publish(name, deferred[name], msg, scene, verified)
 
     def _publish(self, name: str, result: TrackUpdate, msg: PointCloud2, scene: SceneCloud,
                  verified: list) -> None:
         """Count, log and publish one object's outcome of a cloud; a pose joins ``verified``."""
         tracker = self.trackers[name]
         self._cpu[name].append(result.cpu_seconds)
+        if 'first pose' not in self._startup:
+            self._startup.setdefault(f'{name} first outcome', time.monotonic())
         if result.pose is not None:
             verified.append((tracker.model, result.pose))
         if result.lost:
@@ -299,12 +344,20 @@ class ObjectLocalizerNode(Node):
             self.get_logger().info(f'{name}: acquired (quality '
                                    f'{result.quality.quality:.2f}, '
                                    f'{result.cpu_seconds:.2f} s CPU)')
+        if result.pose is not None and 'first pose' not in self._startup:
+            self._startup['first pose'] = time.monotonic()
+            self._log_startup(name, result)
         if result.pose is not None:
             self.counts['published'] += 1
             self.pose_pubs[name].publish(PoseStamped(header=msg.header,
                                                      pose=matrix_to_pose(result.pose)))
-        self.status_pubs[name].publish(track_status(
-            msg.header, name, result.state, result.quality, result.reason))
+        state, reason = result.state, result.reason
+        if tracker.naming_uncertain and result.pose is not None:
+            # the pose is verified, its name is not: flagged (not TRACKING) on every cloud
+            state = TrackState.ACQUIRING
+            reason = f'naming uncertain (identical parts named by stale known poses): {reason}'
+        self.status_pubs[name].publish(track_status(msg.header, name, state, result.quality,
+                                                    reason))
         if result.pose is None:
             return
         if self.cloud_pubs[name].get_subscription_count() > 0:
@@ -315,6 +368,16 @@ class ObjectLocalizerNode(Node):
             stamps, poses = zip(*tracker.history)
             self.track_pubs[name].publish(
                 matrices_to_path(np.array(poses), msg.header.frame_id, stamps))
+
+    def _log_startup(self, name: str, result: TrackUpdate) -> None:
+        """Log the start-up time line once, with the first verified pose (INFO)."""
+        marks = sorted(self._startup.items(), key=lambda kv: kv[1])
+        t0 = self._startup['process start']
+        steps = ', '.join(f'{what} {t - t0:.2f}' for what, t in marks[1:])
+        self.get_logger().info(
+            f'start-up [s from process start]: {steps} ({name}: {result.reason}, '
+            f'{result.cpu_seconds:.2f} s CPU; cloud {self.counts["processed"]} processed of '
+            f'{self.counts["received"]} received; process CPU {time.process_time():.2f} s)')
 
     def _log_stats(self) -> None:
         parts = []

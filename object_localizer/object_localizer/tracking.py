@@ -734,6 +734,10 @@ class ObjectTracker:
     hint: Optional[np.ndarray] = None
     reference: Optional[np.ndarray] = None     # the last known pose (hint or before a loss)
     twins: list = field(default_factory=list)  # trackers of parts with the same shape
+    #: the distinct places (pose, quality) that passed the check in the last global search
+    places: list = field(default_factory=list)
+    #: the track was named among identical parts by stale known poses, not decisively
+    naming_uncertain: bool = False
     lost_count: int = 0
     acquisitions: int = 0
     _last_check_ns: Optional[int] = None
@@ -752,6 +756,7 @@ class ObjectTracker:
         self.hint = None if pose is None else np.asarray(pose, dtype=float).copy()
         self.reference = self.hint
         self.state = TrackState.ACQUIRING
+        self.naming_uncertain = False
         self._last_check_ns = None
         self._lost_ns = None
 
@@ -861,6 +866,7 @@ class ObjectTracker:
         """Try a hint or a recent last pose first (verified), else the global search."""
         s = self.settings
         hint_reason = prefix
+        self.places = []
         if self.hint is not None:
             hint, self.hint = self.hint, None
             pose, q = self._refine_and_check(scene, hint, None, acquisition=True)
@@ -898,6 +904,7 @@ class ObjectTracker:
             if all(symmetric_distance(self.model, pose, d[0]) > s.ambiguity_distance
                    for d in distinct):
                 distinct.append((pose, q))
+        self.places = list(distinct)
         # a twin verified in this cloud already took its place (the penetration check keeps
         # this part out of it): only unverified twins make the acquisition ambiguous
         verified_models = [id(m) for m, _ in self._others]

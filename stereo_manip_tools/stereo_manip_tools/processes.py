@@ -23,7 +23,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 __all__ = ['make_node', 'shutdown_node', 'spin_until', 'executable_path', 'ExecutableProcess',
-           'interrupt_then_kill', 'process_cpu_seconds']
+           'interrupt_then_kill', 'process_cpu_seconds', 'process_age_seconds']
 
 
 def make_node(name: Optional[str] = None) -> Node:
@@ -164,5 +164,15 @@ def process_cpu_seconds(pid: int) -> float:
     try:
         fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    except (OSError, IndexError, ValueError):
+        return float('nan')
+
+
+def process_age_seconds(pid: int | str = 'self') -> float:
+    """Return the seconds since a process started, from /proc (NaN once it has gone)."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+        start = int(fields[19]) / os.sysconf('SC_CLK_TCK')     # field 22: starttime
+        return time.clock_gettime(time.CLOCK_BOOTTIME) - start
     except (OSError, IndexError, ValueError):
         return float('nan')

@@ -5,7 +5,7 @@ import subprocess
 import sys
 import time
 
-from stereo_manip_tools.processes import interrupt_then_kill
+from stereo_manip_tools.processes import interrupt_then_kill, process_age_seconds
 
 
 def _python(code):
@@ -33,3 +33,18 @@ def test_an_exited_process_gets_no_signal():
     proc = subprocess.Popen([sys.executable, '-c', 'raise SystemExit(4)'])
     proc.wait(30)
     assert interrupt_then_kill(proc) == 4
+
+
+def test_process_age_is_the_time_since_the_process_started():
+    t0 = time.monotonic()
+    child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(30)'])
+    try:
+        time.sleep(1.0)
+        age = process_age_seconds(child.pid)
+        # /proc start times are in clock ticks (10 ms)
+        assert 1.0 - 0.05 <= age <= time.monotonic() - t0 + 0.05, age
+    finally:
+        child.kill()
+        child.wait()
+    assert process_age_seconds('self') > 0.0
+    assert process_age_seconds(2 ** 30) != process_age_seconds(2 ** 30)    # gone: NaN
