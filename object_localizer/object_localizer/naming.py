@@ -101,7 +101,7 @@ def _clusters(model, places: list, depth: float) -> List[List[int]]:
 
 
 def name_identical_parts(group: Sequence[ObjectTracker], stamp_ns: int,
-                         accept_uncertain: bool = True) -> Dict[int, TrackUpdate]:
+                         accept_uncertain: bool = False) -> Dict[int, TrackUpdate]:
     """
     Name a group of identical parts, none verified in this cloud, from the places found.
 

@@ -448,12 +448,12 @@ def test_tracking_models_know_their_continuous_symmetry_axes():
 
 # --- naming identical parts with stale known poses (object_localizer.naming) ---
 
-def _search_then_name(trackers, cloud):
+def _search_then_name(trackers, cloud, accept_uncertain=False):
     """Search every part as the node does, then name the group if no search did."""
     results = {n: t.update(cloud, 0, []) for n, t in trackers.items()}
     assert all(r.pose is None for r in results.values()), [r.reason for r in results.values()]
     names = list(trackers)
-    named = name_identical_parts([trackers[n] for n in names], 0)
+    named = name_identical_parts([trackers[n] for n in names], 0, accept_uncertain)
     return {names[k]: r for k, r in named.items()}
 
 
@@ -506,7 +506,7 @@ def test_hints_that_decide_nothing_give_poses_flagged_uncertain():
     assert name_identical_parts(list(trackers.values()), 0, accept_uncertain=False) == {}
     assert all(t.state == TrackState.ACQUIRING for t in trackers.values())
     trackers = _hinted_twin_trackers(models, both_bricks, halfway)
-    named = _search_then_name(trackers, cloud)
+    named = _search_then_name(trackers, cloud, accept_uncertain=True)
     assert set(named) == set(trackers)
     on = set()
     for n, res in named.items():
