@@ -24,11 +24,12 @@ import pytest
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 I4 = np.eye(4)
-OPTS = dict(sigma_translation=1.5e-3, sigma_rotation=float(np.deg2rad(2.0)))
+OPTS = {'sigma_translation': 1.5e-3, 'sigma_rotation': float(np.deg2rad(2.0))}
 
 
 @pytest.fixture(scope='module')
 def peg_hole():
+    """Return the shipped peg and hole_block."""
     return load_polyhedron('peg'), load_polyhedron('hole_block')
 
 
