@@ -208,7 +208,7 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                 continue
             T_in = T_c.copy()
             T_in[:3, 3] -= CONTACT_PROBE * fixed.face_normals[key[2]]
-            if penetration_depth(moving, fixed, T_fixed @ T_in, T_fixed, spacing) \
+            if _face_contact_depth(moving, fixed, T_in, key[1], key[2], spacing) \
                     < 0.5 * CONTACT_PROBE:
                 spurious.add(key)
         if not spurious:
@@ -326,6 +326,44 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                                  penetration_before=pen)
     first.relation_source = 'recognised'
     return first
+
+
+def _face_boundary_samples(poly: Polyhedron, face: int, spacing: float) -> np.ndarray:
+    """Points [m] every ``spacing`` along the edges bounding ``face`` (model frame), cached."""
+    key = ('face boundary', int(face), float(spacing))
+    pts = poly._samples.get(key)
+    if pts is None:
+        out = []
+        for e in np.flatnonzero(np.any(poly.edge_faces == face, axis=1)):
+            k = max(1, int(np.ceil(poly.edge_lengths[e] / spacing)))
+            a, b = poly.vertices[poly.edge_vertices[e]]
+            out.append(a + (np.arange(k + 1) / k)[:, None] * (b - a))
+        pts = np.vstack(out) if out else np.zeros((0, 3))
+        poly._samples[key] = pts
+    return pts
+
+
+def _face_contact_depth(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
+                        moving_face: int, fixed_face: int, spacing: float) -> float:
+    """
+    Interpenetration depth [m] of two faces' boundaries at ``T_rel`` (moving in fixed frame).
+
+    :func:`~contact_correction.contact_relation.penetration_depth` restricted to the points
+    sampled along the edges of the two faces: after a probe step into a face-face contact,
+    the faces overlap over an area when some of these points are inside the other solid
+    (by about the step), along a boundary line only when none is.
+    """
+    R, t = T_rel[:3, :3], T_rel[:3, 3]
+    depth = 0.0
+    for pts, other in ((_face_boundary_samples(moving, moving_face, spacing) @ R.T + t, fixed),
+                       ((_face_boundary_samples(fixed, fixed_face, spacing) - t) @ R, moving)):
+        pts = pts[other.in_bbox(pts)]
+        if len(pts) == 0:
+            continue
+        inside = other.contains(pts) > 0.5 + 1e-6
+        if np.any(inside):
+            depth = max(depth, float(other.distance_to_surface(pts[inside]).max()))
+    return depth
 
 
 def _recognised_free_translation(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
