@@ -27,9 +27,10 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .contact_relation import (
-    ContactPair, detect_contact_relation, evaluate_contacts, penetration_depth, relative_pose,
-    VERTEX)
+    ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts, penetration_depth,
+    relative_pose, VERTEX)
 from .correction import correct_pose, CorrectionResult
+from .optimal_correction import constraint_directions, constraint_matrix
 from .polyhedron import Polyhedron
 from .recognition import (
     FrameCandidates, Hypothesis, recognise_track, RecognitionOptions, RelationRecognizer,
@@ -185,6 +186,14 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                     moving, fixed, T_fixed @ T_b, T_fixed, spacing) <= tol):
                 r.T_moving = T_fixed @ T_b
                 r.translation_change = T_b[:3, 3] - T_o[:3, 3]
+                # the relation at the returned pose: the pairs still in contact there (pushed
+                # pairs left behind by the restored free components are not)
+                A, g = constraint_matrix(moving, fixed, T_b, list(r.pairs))
+                on = np.abs(g.distances) <= tol
+                r.pairs = [p for p, k in zip(r.pairs, on) if k]
+                r.geometry = ContactGeometry(g.distances[on], g.points[on], g.normals[on])
+                r.directions = constraint_directions(A[on], max(moving.size, 1e-6))
+                r.max_residual = float(np.abs(g.distances[on]).max(initial=0.0))
                 r.status += (f' (free directions restored: {np.abs(leak).max() * 1e3:.3g} mm '
                              'along a direction the relation leaves free)')
                 T_c = T_b
