@@ -90,3 +90,31 @@ def test_push_out_keeps_the_depth_in_the_hole(peg_hole):
     assert abs(r.T_moving[2, 3] - T[2, 3]) < 1e-6, r.status
     # the walls are enforced: the peg's x, y offsets (2.4 / 0.7 mm) are removed
     assert np.abs(r.T_moving[:2, 3]).max() < 1e-3, r.status
+
+
+def test_correction_that_must_move_along_the_free_direction_is_not_applied():
+    """
+    T-peg at the slot's entrance, observed 0.26 mm outside it (a frame of the benchmark).
+
+    The relation stem wall + bar on the shoulder (free: y, the slot's direction) exists only
+    with the faces overlapping; the correction reached it by moving y 0.26 mm (before: applied,
+    0.258 mm along the free direction). The change along the relation's free direction must
+    stay below 1 um: the observation, which does not penetrate, is passed through.
+    """
+    from contact_correction.tracks import track_models
+    models = track_models()
+    m, f = models['t_peg'], models['t_slot_block']
+    T = np.array([[9.99827e-01, 5.52100e-03, 1.77870e-02, -6.94000e-04],
+                  [-5.33700e-03, 9.99932e-01, -1.03850e-02, 2.02580e-02],
+                  [-1.78440e-02, 1.02880e-02, 9.99788e-01, -1.33000e-04],
+                  [0.0, 0.0, 0.0, 1.0]])
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = U @ Vt
+    opts = RecognitionOptions(**OPTS)
+    rec = RelationRecognizer(m, f, opts)
+    fc = rec.frame(T, I4)
+    h = rec.evaluate(frozenset({('ff', 6, 8), ('ff', 9, 5)}))
+    assert h is not None
+    r = correct_recognised(m, f, T, I4, h, fc, rec.last_guard(), rec.margin, guard_limits(opts))
+    assert abs(r.T_moving[1, 3] - T[1, 3]) < 1e-6, r.status
+    assert penetration_depth(m, f, r.T_moving, I4, 0.002) < 1e-5
