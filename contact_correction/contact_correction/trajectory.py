@@ -162,7 +162,8 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
         """
         Check a correction with ``h`` against the relation's own free directions.
 
-        A face-face group is a contact only when moving the corrected pose into it penetrates;
+        A face-face group (or a single vertex-face / face-vertex one) is a contact only when
+        moving the corrected pose into it penetrates;
         one whose faces meet only along a boundary line (a peg side face level with a hole's
         wall while the peg stands on the top face: the rim is convex, nothing stops the peg
         along the wall's normal) is dropped and the frame corrected with the rest of ``h``.
@@ -213,12 +214,19 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
             return r
         spurious = set()
         for key in h.state:
-            if key[0] != 'ff':
+            if key[0] not in ('ff', 'fv', 'vf'):
                 continue
             T_in = T_c.copy()
-            T_in[:3, 3] -= CONTACT_PROBE * fixed.face_normals[key[2]]
-            if _face_contact_depth(moving, fixed, T_in, key[1], key[2], spacing) \
-                    < 0.5 * CONTACT_PROBE:
+            if key[0] == 'fv':      # a fixed vertex on a moving face: the face advances
+                T_in[:3, 3] += CONTACT_PROBE * (T_c[:3, :3] @ moving.face_normals[key[1]])
+                depth = _vertex_depth(T_in, fixed.vertices[key[2]], moving, inverse=True)
+            elif key[0] == 'vf':
+                T_in[:3, 3] -= CONTACT_PROBE * fixed.face_normals[key[2]]
+                depth = _vertex_depth(T_in, moving.vertices[key[1]], fixed, inverse=False)
+            else:
+                T_in[:3, 3] -= CONTACT_PROBE * fixed.face_normals[key[2]]
+                depth = _face_contact_depth(moving, fixed, T_in, key[1], key[2], spacing)
+            if depth < 0.5 * CONTACT_PROBE:
                 spurious.add(key)
         if not spurious:
             return r
@@ -373,6 +381,22 @@ def _face_contact_depth(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray
         if np.any(inside):
             depth = max(depth, float(other.distance_to_surface(pts[inside]).max()))
     return depth
+
+
+def _vertex_depth(T_rel: np.ndarray, x: np.ndarray, solid: Polyhedron, inverse: bool) -> float:
+    """
+    Depth [m] of one vertex inside ``solid`` (0 outside or on its surface).
+
+    :param T_rel: moving pose in the fixed frame (4, 4).
+    :param x: the vertex in its own model frame (3,): the moving object's (``inverse`` False,
+        tested in the fixed solid) or the fixed object's (``inverse`` True, tested in the
+        moving solid).
+    """
+    R, t = T_rel[:3, :3], T_rel[:3, 3]
+    p = ((x - t) @ R if inverse else R @ x + t)[None]
+    if solid.contains(p)[0] <= 0.5 + 1e-6:
+        return 0.0
+    return float(solid.distance_to_surface(p)[0])
 
 
 def _recognised_free_translation(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
