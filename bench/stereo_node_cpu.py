@@ -48,6 +48,119 @@ from stereo_manip_tools.bench_report import goal, write_report  # noqa: E402
 SCENE = 'peg_in_hole'
 
 
+def _main_kernel():
+    """Return main's fused kernel and 3x3 median (the peers), compiled on first call."""
+    import numba
+
+    from stereo_depth.matching_cost import _hamming_row, _reverse_row
+    from stereo_depth.optimization import _right_row, _wta_pixel
+
+    @numba.njit(parallel=True, nogil=True, fastmath=True, boundscheck=False)
+    def _main_census_box_wta(cl, cr, nd, rw, rh, invalid, nchunks, uniqueness):
+        # main's fused kernel (7594e47, copied unchanged), the peer of the paired comparison:
+        # census-Hamming cost -> box sum (borders replicated) -> WTA of both views, row by
+        # row, 32-bit codes, uint8 Hamming rows, per-pixel WTA with a right-view argmin.
+        h, w = cl.shape
+        dl = np.empty((h, w), np.float32)
+        dr = np.empty((h, w), np.float32)
+        for ci in numba.prange(nchunks):
+            y0 = ci * h // nchunks
+            y1 = (ci + 1) * h // nchunks
+            if y0 >= y1:
+                continue
+            vs = np.zeros((w, nd), np.uint16)
+            # ring of Hamming rows: row r lives in slot r % nring until it leaves the window
+            nring = 2 * rh + 2
+            ring = np.empty((nring, w, nd), np.uint8)
+            crr = np.empty(w, cr.dtype)
+            hs = np.zeros(nd, np.uint16)
+            rmin = np.empty(w, np.uint16)
+            rarg = np.empty(w, np.int32)
+            for r in range(max(y0 - rh, 0), min(y0 + rh, h - 1) + 1):
+                _reverse_row(cr[r], crr)
+                _hamming_row(cl[r], crr, nd, invalid, ring[r % nring])
+            for dy in range(-rh, rh + 1):
+                hadd = ring[min(max(y0 + dy, 0), h - 1) % nring]
+                for x in range(w):
+                    vrow = vs[x]
+                    arow = hadd[x]
+                    for d in range(nd):
+                        vrow[d] = np.uint16(vrow[d] + arow[d])
+            for y in range(y0, y1):
+                if y > y0:
+                    ya = min(y + rh, h - 1)
+                    ys = max(y - rh - 1, 0)
+                    if ya != ys:
+                        if y + rh <= h - 1:
+                            _reverse_row(cr[ya], crr)
+                            _hamming_row(cl[ya], crr, nd, invalid, ring[ya % nring])
+                        hadd = ring[ya % nring]
+                        hsub = ring[ys % nring]
+                        for x in range(w):
+                            vrow = vs[x]
+                            arow = hadd[x]
+                            srow = hsub[x]
+                            for d in range(nd):
+                                vrow[d] = np.uint16(vrow[d] + arow[d] - srow[d])
+                rmin[:] = np.uint16(65535)
+                rarg[:] = -1
+                hs[:] = 0
+                for dx in range(-rw, rw + 1):
+                    vrow = vs[min(max(dx, 0), w - 1)]
+                    for d in range(nd):
+                        hs[d] = np.uint16(hs[d] + vrow[d])
+                dl[y, 0] = _wta_pixel(hs, 0, w, rmin, rarg, uniqueness, nd <= 256)
+                for x in range(1, w):
+                    va = vs[min(x + rw, w - 1)]
+                    vb = vs[max(x - rw - 1, 0)]
+                    for d in range(nd):
+                        hs[d] = np.uint16(hs[d] + va[d] - vb[d])
+                    dl[y, x] = _wta_pixel(hs, x, w, rmin, rarg, uniqueness, nd <= 256)
+                _right_row(rarg, dr[y])
+        return dl, dr
+
+    # main's 3x3 median (7594e47, copied unchanged): OpenCV's median of the complete windows,
+    # the valid-neighbour median elsewhere
+    @numba.njit(parallel=True, nogil=True)
+    def _main_nan_median(d, r, full, use_full):
+        # full: the plain median of every complete window (OpenCV), used where the whole window
+        # lies inside the image and holds no NaN; other pixels take the median of their valid
+        # neighbours by insertion sort.
+        h, w = d.shape
+        out = np.empty_like(d)
+        for y in numba.prange(h):
+            buf = np.empty((2 * r + 1) * (2 * r + 1), np.float32)
+            inner_y = r <= y < h - r
+            for x in range(w):
+                if np.isnan(d[y, x]):
+                    out[y, x] = np.nan
+                    continue
+                if use_full and inner_y and r <= x < w - r:
+                    s = np.float32(0.0)
+                    for yy in range(y - r, y + r + 1):
+                        for xx in range(x - r, x + r + 1):
+                            s += d[yy, xx]
+                    if not np.isnan(s):     # NaN propagates through the sum
+                        out[y, x] = full[y, x]
+                        continue
+                n = 0
+                for yy in range(max(0, y - r), min(h, y + r + 1)):
+                    for xx in range(max(0, x - r), min(w, x + r + 1)):
+                        v = d[yy, xx]
+                        if not np.isnan(v):
+                            # insertion into the sorted prefix buf[:n]
+                            k = n
+                            while k > 0 and buf[k - 1] > v:
+                                buf[k] = buf[k - 1]
+                                k -= 1
+                            buf[k] = v
+                            n += 1
+                out[y, x] = buf[n // 2] if n % 2 == 1 else 0.5 * (buf[n // 2 - 1] + buf[n // 2])
+        return out
+
+    return _main_census_box_wta, _main_nan_median
+
+
 def stats(values: List[float]) -> Dict[str, float]:
     """Return median, p95, max and n of ``values``."""
     a = np.asarray(values, float)
@@ -197,7 +310,8 @@ def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
     """Per-stage CPU per frame in this process (part 2 of the module docstring)."""
     import numba
 
-    from stereo_depth import optimization as op, pipeline as pl, refinement as rf
+    from stereo_depth import matching_cost as mc, optimization as op, pipeline as pl, \
+        refinement as rf
     from stereo_depth.stereo_depth_node import prepare_pair, stereo_geometry
     from stereo_manip_tools.conversions import xyz_to_pointcloud2
 
@@ -224,9 +338,8 @@ def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
         geo = stereo_geometry(infos[0], infos[1], w, h)
         lc = np.ascontiguousarray(limg[:, dmin:])
         rc = np.ascontiguousarray(rimg[:, :w - dmin])
-        cl = timed('census transforms', op.census_codes, lc, cw)
-        cr = op.census_codes(rc, cw)
-        times['census transforms'][-1] *= 2.0      # both views cost alike; timed once
+        cl = timed('census byte planes, left', mc.census_planes, lc, cw)
+        cr = timed('census byte planes, right', mc.census_planes, rc, cw)
         dl, dr = timed('cost + aggregation + WTA (fused)', op._census_box_wta, cl, cr, nd,
                        win[0] // 2, win[1] // 2, nbits, 1, 0.0)
         d = timed('left-right check', rf.left_right_check, dl, dr, defaults['lr_max_diff'])
@@ -260,19 +373,18 @@ def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
     The shared machine's load moves CPU times by +-15 ms between runs a minute apart (the
     node-process figures of part 1 cannot separate a 10 ms change); alternating the two paths
     on every frame gives both the same load, and the per-frame difference is the change.
-    main's path: 64-bit census codes into the fused kernel, ``nan_to_num`` before the median,
-    ``cloud_points`` + ``xyz_to_pointcloud2``. This branch's: ``compute_disparity`` (32-bit
-    codes, ``np.where``) + ``cloud_message_data`` + ``float32_fields_to_pointcloud2``. Both
-    include decoding, depth and the message; results are checked equal on every frame.
+    main's path (7594e47): 32-bit census codes (``census_transform``) into main's fused kernel
+    (``_main_kernel``: uint8 Hamming rows, per-pixel WTA), main's median (OpenCV + the
+    valid-neighbour median), then the same depth and packed cloud. This branch's:
+    ``compute_disparity`` (census byte planes, the padded packed-minimum kernel, the 3x3
+    sorting-network median). Both include decoding, depth and the message; the clouds are
+    checked byte-equal on every frame.
     """
-    import cv2
     import numba
 
-    from stereo_depth import matching_cost as mc, optimization as op, pipeline as pl, \
-        refinement as rf
+    from stereo_depth import matching_cost as mc, pipeline as pl
     from stereo_depth.stereo_depth_node import prepare_pair, stereo_geometry
-    from stereo_manip_tools.conversions import float32_fields_to_pointcloud2, \
-        xyz_to_pointcloud2
+    from stereo_manip_tools.conversions import float32_fields_to_pointcloud2
 
     numba.set_num_threads(1)
     dmin, nd = int(params['min_disparity']), int(params['max_disparity'])
@@ -281,26 +393,34 @@ def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
     cw, win = tuple(p['census_window']), tuple(p['window'])
     nbits = np.uint8(cw[0] * cw[1] - 1)
 
+    import cv2
+
+    from stereo_depth import refinement as rf
+
+    main_kernel, main_nan_median = _main_kernel()
+
     def main_path(lm, rm):
         limg, rimg, colours = prepare_pair(lm, rm)
         h, w = limg.shape
         geo = stereo_geometry(infos[0], infos[1], w, h)
         lc = np.ascontiguousarray(limg[:, dmin:])
         rc = np.ascontiguousarray(rimg[:, :w - dmin])
-        dl, dr = op._census_box_wta(mc.census_transform(lc, cw), mc.census_transform(rc, cw),
-                                    nd, win[0] // 2, win[1] // 2, nbits, 1, 0.0)
+        cl = mc.census_transform(lc, cw).astype(np.uint32)      # main's census_codes
+        cr = mc.census_transform(rc, cw).astype(np.uint32)
+        dl, dr = main_kernel(cl, cr, nd, win[0] // 2, win[1] // 2, nbits, 1, 0.0)
         d = rf.left_right_check(dl, dr, p['lr_max_diff'])
         d = rf.remove_speckles(d, p['speckle_size'], p['speckle_diff'])
-        full = cv2.medianBlur(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0), p['median'])
-        d = rf._nan_median(d, p['median'] // 2, full, True)
+        full = cv2.medianBlur(np.where(np.isfinite(d), d, np.float32(0.0)), p['median'])
+        d = main_nan_median(d, p['median'] // 2, full, True)
         d = rf.fill_invalid(d, 'row')
         d[(d < 0.5) | (d > nd - 1.5)] = np.nan
         disp = np.full((h, w), np.nan, np.float32)
         disp[:, dmin:] = d + np.float32(dmin)
         depth = pl.disparity_to_depth(disp, geo['fx'], geo['baseline'], geo['doffs'])
-        pts, rgb = pl.cloud_points(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'], dec,
-                                   False, colours)
-        return xyz_to_pointcloud2(pts, lm.header)
+        packed = pl.cloud_message_data(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'], dec,
+                                       False, colours)
+        return float32_fields_to_pointcloud2(packed.buffer, packed.fields, lm.header,
+                                             is_dense=packed.is_dense)
 
     def branch_path(lm, rm):
         limg, rimg, colours = prepare_pair(lm, rm)

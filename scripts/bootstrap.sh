@@ -81,6 +81,12 @@ if [ "$changed" != 0 ]; then
      > "$ROOT/log/bootstrap_build.txt" 2>&1) || {
     tail -40 "$ROOT/log/bootstrap_build.txt"; say "colcon build failed; full output in log/"; exit 1; }
   touch "$STAMP"
+  # numba's disk cache of the contact correction's compiled iteration (~30 s CPU when cold;
+  # else a node's first correction would wait for the compiler)
+  say 'numba cache of the contact correction kernels'
+  PYTHONPATH="$ROOT/contact_correction:$ROOT/stereo_manip_tools${PYTHONPATH:+:$PYTHONPATH}" \
+    "$VENV/bin/python" -c 'from contact_correction.nonlinear_correction import warm_up; warm_up()' \
+    || say 'warning: the contact correction kernels could not be compiled now'
 else
   say 'packages unchanged since the last build: colcon build skipped'
 fi

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import List, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 from stereo_manip_tools.transforms import invert_transform, transform_points
@@ -261,17 +261,22 @@ def off_element_distance(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarra
     out = np.zeros(len(pairs))
     R, t = T_rel[:3, :3], T_rel[:3, 3]
     T_inv = invert_transform(T_rel)
+    # projections gathered per solid, their face distances measured in one call each
+    proj: Tuple[Tuple[list, list, list], Tuple[list, list, list]] = (([], [], []),
+                                                                     ([], [], []))
     for k, p in enumerate(pairs):
         if p.moving_type == VERTEX and p.fixed_type == FACE:
             x = R @ moving.vertices[p.moving_index] + t
             n = fixed.face_normals[p.fixed_index]
             q = x - (n @ x - fixed.face_offsets[p.fixed_index]) * n
-            out[k] = fixed.face_distance(p.fixed_index, q[None])[0]
+            for lst, v in zip(proj[0], (k, p.fixed_index, q)):
+                lst.append(v)
         elif p.moving_type == FACE and p.fixed_type == VERTEX:
             w = T_inv[:3, :3] @ fixed.vertices[p.fixed_index] + T_inv[:3, 3]
             n = moving.face_normals[p.moving_index]
             q = w - (n @ w - moving.face_offsets[p.moving_index]) * n
-            out[k] = moving.face_distance(p.moving_index, q[None])[0]
+            for lst, v in zip(proj[1], (k, p.moving_index, q)):
+                lst.append(v)
         elif p.moving_type == EDGE and p.fixed_type == EDGE:
             a = R @ moving.vertices[moving.edge_vertices[p.moving_index, 0]] + t
             em = R @ moving.edge_directions[p.moving_index]
@@ -285,6 +290,9 @@ def off_element_distance(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarra
             Lm = moving.edge_lengths[p.moving_index]
             Lf = fixed.edge_lengths[p.fixed_index]
             out[k] = max(0.0, -sm, sm - Lm, -sf, sf - Lf)
+    for (ks, faces, qs), solid in zip(proj, (fixed, moving)):
+        if ks:
+            out[ks] = solid.faces_distance(np.array(faces), np.array(qs))
     return out
 
 
@@ -390,10 +398,7 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
     if len(ci) == 0:
         return []
     Q = V[ci] - D[ci, cf][:, None] * fpoly.face_normals[cf]
-    ok = np.zeros(len(ci), dtype=bool)
-    for f in np.unique(cf):
-        sel = cf == f
-        ok[sel] = fpoly.face_distance(int(f), Q[sel]) <= margin
+    ok = fpoly.faces_distance(cf, Q) <= margin
     out = []
     ks = np.flatnonzero(ok)
     vs, fs = idx[ci[ks]], cf[ks]
@@ -408,12 +413,17 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
     clear = lo_e > -sin_tol + band                      # no edge below the plane: contact
     below = lo_e < -sin_tol - band                      # an edge below the plane ...
     apart = below & (lo_f > -cos_tol + band)            # ... and no face against: not one
-    for j in range(len(ks)):
-        v, f = int(vs[j]), int(fs[j])
-        if clear[j]:
-            out.append((v, f))
+    # the exact per-candidate tests; the cone tests of all candidates that need one are made
+    # in one batch (the same per-point queries)
+    decided: List[Optional[bool]] = []
+    cones: List[Tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    for j, (v, f, c, a) in enumerate(zip(vs.tolist(), fs.tolist(), clear.tolist(),
+                                         apart.tolist())):
+        if c:
+            decided.append(True)
             continue
-        if apart[j]:
+        if a:
+            decided.append(False)
             continue
         dirs = vpoly.vertex_edge_dirs[v] @ R.T
         nf = fpoly.face_normals[f]
@@ -426,11 +436,47 @@ def _vertex_face_candidates(vpoly: Polyhedron, fpoly: Polyhedron, R: np.ndarray,
             # level with a flush, coplanar face beside a slot it slides in (same normals).
             against = np.any((vpoly.face_normals[vpoly.vertex_faces[v]] @ R.T) @ nf
                              < -cos_tol)
-            if not against or _cone_enters(V[ci[ks[j]]], dirs, vpoly.vertex_edge_lengths[v],
-                                           fpoly, pen, sin_tol):
+            if not against:
+                decided.append(False)
                 continue
-        out.append((v, f))
+            decided.append(None)
+            cones.append((V[ci[ks[j]]], dirs, vpoly.vertex_edge_lengths[v]))
+            continue
+        decided.append(True)
+    enters = _cones_enter(cones, fpoly, pen, sin_tol) if cones else []
+    c = 0
+    for v, f, ok_j in zip(vs.tolist(), fs.tolist(), decided):
+        if ok_j is None:
+            ok_j = not enters[c]
+            c += 1
+        if ok_j:
+            out.append((v, f))
     return out
+
+
+try:
+    import numba
+
+    @numba.njit(cache=True, fastmath=False)
+    def _vertex_min_kernel(rows_all: np.ndarray, start: np.ndarray, vs: np.ndarray,
+                           cnt: np.ndarray, R: np.ndarray,
+                           normals: np.ndarray) -> np.ndarray:  # pragma: no cover
+        """Compiled :func:`_vertex_min` (every vertex has rows)."""
+        out = np.empty(len(vs))
+        for j in range(len(vs)):
+            m = np.inf
+            s0 = start[vs[j]]
+            for r in range(s0, s0 + cnt[j]):
+                val = 0.0
+                for i in range(3):
+                    val += (R[i, 0] * rows_all[r, 0] + R[i, 1] * rows_all[r, 1]
+                            + R[i, 2] * rows_all[r, 2]) * normals[j, i]
+                if val < m:
+                    m = val
+            out[j] = m
+        return out
+except ImportError:  # pragma: no cover - numba is in the environment
+    _vertex_min_kernel = None
 
 
 def _vertex_min(table: Tuple[np.ndarray, np.ndarray, np.ndarray], vs: np.ndarray,
@@ -446,32 +492,44 @@ def _vertex_min(table: Tuple[np.ndarray, np.ndarray, np.ndarray], vs: np.ndarray
     cnt = count[vs]
     if len(vs) == 0 or not np.all(cnt > 0):
         return out
+    if _vertex_min_kernel is not None:
+        # compiled (the products summed in another order: equal to ~1e-16, far inside the
+        # 1e-9 band within which the caller takes the exact per-candidate test)
+        return _vertex_min_kernel(rows_all, start, vs.astype(np.int64), cnt.astype(np.int64),
+                                  np.ascontiguousarray(R, dtype=float),
+                                  np.ascontiguousarray(normals, dtype=float))
     seg = np.cumsum(cnt) - cnt
     rows = np.repeat(start[vs], cnt) + (np.arange(int(cnt.sum())) - np.repeat(seg, cnt))
     vals = ((rows_all[rows] @ R.T) * np.repeat(normals, cnt, axis=0)).sum(1)
     return np.minimum.reduceat(vals, seg)
 
 
-def _cone_enters(apex: np.ndarray, dirs: np.ndarray, lengths: np.ndarray, other: Polyhedron,
-                 depth: float, sin_tol: float) -> bool:
+def _cones_enter(cones: Sequence[Tuple[np.ndarray, np.ndarray, np.ndarray]], other: Polyhedron,
+                 depth: float, sin_tol: float) -> List[bool]:
     """
-    Tell whether an edge leaving ``apex`` runs into the interior of ``other``.
+    Tell, per vertex, whether an edge leaving it runs into the interior of ``other``.
 
     A point a quarter along each edge (at most 10 mm) is tested; it must be inside ``other``
     deeper than the allowed ``depth`` plus the angular slack. Points on ``other``'s surface
-    (an edge lying along a face of the other solid) do not count.
+    (an edge lying along a face of the other solid) do not count. All vertices' points are
+    queried in one batch.
+
+    :param cones: per vertex: apex [m] (3,), edge directions (k, 3), edge lengths [m] (k,).
+    :returns: per vertex, True when an edge enters ``other``.
     """
-    delta = np.minimum(0.25 * lengths, 0.01)
-    q = apex + delta[:, None] * dirs
-    box = other.in_bbox(q)
-    if not np.any(box):
-        return False
-    q, delta = q[box], delta[box]
-    inside = other.contains(q) > 0.5 + 1e-3
-    if not np.any(inside):
-        return False
-    dist = other.distance_to_surface(q[inside])
-    return bool(np.any(dist > depth + delta[inside] * sin_tol + 1e-9))
+    delta = np.concatenate([np.minimum(0.25 * ln, 0.01) for _, _, ln in cones])
+    q = np.concatenate([a + np.minimum(0.25 * ln, 0.01)[:, None] * d for a, d, ln in cones])
+    owner = np.repeat(np.arange(len(cones)), [len(ln) for _, _, ln in cones])
+    hit = np.zeros(len(q), dtype=bool)
+    box = np.flatnonzero(other.in_bbox(q))
+    if len(box):
+        inside = box[other.contains(q[box]) > 0.5 + 1e-3]
+        if len(inside):
+            dist = other.distance_to_surface(q[inside])
+            hit[inside] = dist > depth + delta[inside] * sin_tol + 1e-9
+    out = np.zeros(len(cones), dtype=bool)
+    np.logical_or.at(out, owner, hit)
+    return out.tolist()
 
 
 def penetration_depth(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
@@ -489,10 +547,5 @@ def penetration_depth(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarra
     depth = 0.0
     for pts, other in ((transform_points(T_rel, moving.edge_samples(spacing)), fixed),
                        (transform_points(T_inv, fixed.edge_samples(spacing)), moving)):
-        pts = pts[other.in_bbox(pts)]
-        if len(pts) == 0:
-            continue
-        inside = other.contains(pts) > 0.5 + 1e-6
-        if np.any(inside):
-            depth = max(depth, float(other.distance_to_surface(pts[inside]).max()))
+        depth = max(depth, other.penetration_of(pts, 0.5 + 1e-6))
     return depth

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import time
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 from stereo_manip_tools.transforms import check_transform, rotation_log
@@ -25,7 +25,8 @@ from .contact_relation import (
     off_element_distance, penetration_depth, relative_pose)
 from .nonlinear_correction import correct_nonlinear, RESIDUAL_TOLERANCE
 from .optimal_correction import (
-    constraint_directions, constraint_matrix, ConstraintDirections, correct_optimal)
+    constraint_directions, constraint_matrix, ConstraintDirections, correct_optimal,
+    scaled_singular_values)
 from .polyhedron import Polyhedron
 
 __all__ = ['CorrectionResult', 'correct_pose']
@@ -89,19 +90,41 @@ max_correction_sigma`) and a relation with fewer constraints, the non-penetratio
 
 
 def _near_degenerate(A: np.ndarray, length_scale: float, lo: float = 1e-9,
-                     hi: float = 1e-4) -> bool:
+                     hi: float = 1e-4, singular_values: Optional[np.ndarray] = None) -> bool:
     """
     Tell whether the pose sits at (or next to) a degenerate configuration of the relation.
 
     True when Eq. 2's matrix has a singular value that is neither clearly zero nor clearly
     non-zero (relative to the largest, rotation columns divided by ``length_scale``): the
     pose sits at (or next to) a degenerate configuration of the relation.
+
+    :param singular_values: ``scaled_singular_values(A, length_scale)`` when known already.
     """
     if len(A) == 0:
         return False
-    s = np.linalg.svd(np.hstack([A[:, :3] / length_scale, A[:, 3:]]), compute_uv=False)
+    s = scaled_singular_values(A, length_scale) if singular_values is None \
+        else singular_values
     r = s / max(s[0], 1e-300)
     return bool(np.any((r > lo) & (r < hi)))
+
+
+#: poses that passed check_transform lately (their bytes): a track's fixed pose, and the
+#: observation tried again by the fallbacks of one frame, are checked once
+_VALID_POSES: Dict[bytes, None] = {}
+
+
+def _checked_transform(T: np.ndarray, name: str) -> np.ndarray:
+    """Return ``check_transform(T, name)``, remembering the last few valid poses."""
+    A = np.asarray(T, dtype=float)
+    key = A.tobytes() if A.shape == (4, 4) else None
+    if key is not None and key in _VALID_POSES:
+        return A
+    A = check_transform(T, name)
+    if key is not None:
+        if len(_VALID_POSES) >= 8:
+            _VALID_POSES.clear()
+        _VALID_POSES[key] = None
+    return A
 
 
 def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
@@ -161,8 +184,8 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         return res
 
     try:
-        Tm = check_transform(T_moving, 'moving pose')
-        Tf = check_transform(T_fixed, 'fixed pose')
+        Tm = _checked_transform(T_moving, 'moving pose')
+        Tf = _checked_transform(T_fixed, 'fixed pose')
     except ValueError as exc:
         return passthrough(f'invalid input: {exc}')
     T_rel_E = relative_pose(Tm, Tf)
@@ -181,6 +204,21 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                            f'{tolerance:.3g} m; pose passed through',
                            penetration_before=pen_before)
     L = max(moving.size, 1e-6)
+    # singular values of each Eq. 2 matrix met below, computed once (the degeneracy test and
+    # the constraint rank use the same ones); keyed by identity, the matrix kept alive
+    svd_memo: dict = {}
+
+    def sv(A: np.ndarray) -> np.ndarray:
+        e = svd_memo.get(id(A))
+        if e is None or e[0] is not A:
+            e = svd_memo[id(A)] = (A, scaled_singular_values(A, L) if len(A) else None)
+        return e[1]
+
+    def degenerate(A: np.ndarray) -> bool:
+        return _near_degenerate(A, L, singular_values=sv(A))
+
+    def directions(A: np.ndarray) -> ConstraintDirections:
+        return constraint_directions(A, L, singular_values=sv(A))
 
     def solve(length_scale: Optional[float], schedule: tuple):
         nl = correct_nonlinear(moving, fixed, T_rel_E, pairs, length_scale=length_scale,
@@ -205,7 +243,7 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
 
     try:
         nl, T_rel, method, status, cm = solve(None, (3e-2, 3e-3))
-        if cm is not None and _near_degenerate(cm[0], L):
+        if cm is not None and degenerate(cm[0]):
             # the non-linear step reached a degenerate configuration of the relation (e.g.
             # a peg just inside a hole pulled up to the rim, where it may tilt): retry with
             # rotations cheaper and a stronger pull towards the observation
@@ -220,17 +258,17 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                            f'{nl.max_residual:.3g} m); pose passed through', pairs=pairs,
                            penetration_before=pen_before)
     A, geom = cm
-    dirs = constraint_directions(A, L)
+    dirs = directions(A)
     T_nl = Tf @ nl.T_rel
-    if _near_degenerate(A, L) and method != 'nonlinear':
+    if degenerate(A) and method != 'nonlinear':
         # fall back to the non-linear result when it is not degenerate itself
         A_nl, geom_nl = constraint_matrix(moving, fixed, nl.T_rel, pairs)
-        if not _near_degenerate(A_nl, L):
+        if not degenerate(A_nl):
             T_rel, method, A, geom = nl.T_rel, 'nonlinear', A_nl, geom_nl
             status = ('non-linear correction (the optimal one reached a degenerate '
                       'configuration of the relation)')
-            dirs = constraint_directions(A, L)
-    if _near_degenerate(A, L):
+            dirs = directions(A)
+    if degenerate(A):
         return passthrough(
             f'{method} correction reached a degenerate configuration of the relation (Eq. 2 '
             'nearly loses rank: e.g. pulled to the rim of a hole); pose passed through',
@@ -249,7 +287,7 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         keep = off <= element_margin
         if np.any(keep):
             A_keep = A[keep]
-            dk = constraint_directions(A_keep, L)
+            dk = directions(A_keep)
             if dk.constraint_rank == dirs.constraint_rank \
                     and dk.rotation_rank == dirs.rotation_rank:
                 pairs = [p for p, k in zip(pairs, keep) if k]
@@ -273,9 +311,9 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         if pen_nl <= max(residual_tolerance, 1e-6):
             A_nl, geom_nl = constraint_matrix(moving, fixed, nl.T_rel, pairs)
             off_nl = off_element_distance(moving, fixed, nl.T_rel, pairs)
-            if not _near_degenerate(A_nl, L) and off_nl.max(initial=0.0) <= element_margin:
+            if not degenerate(A_nl) and off_nl.max(initial=0.0) <= element_margin:
                 T_rel, T_out, A, geom, pen_after = nl.T_rel, T_nl, A_nl, geom_nl, pen_nl
-                dirs = constraint_directions(A, L)
+                dirs = directions(A)
                 dt = T_rel[:3, 3] - T_rel_E[:3, 3]
                 dr = rotation_log(T_rel[:3, :3] @ T_rel_E[:3, :3].T)
                 status = (f'non-linear correction ({method} left penetration '

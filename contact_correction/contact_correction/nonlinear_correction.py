@@ -26,7 +26,7 @@ from .contact_relation import ContactEvaluator, ContactPair
 from .polyhedron import cross3, Polyhedron
 
 __all__ = ['NonlinearResult', 'correct_nonlinear', 'apply_screw', 'constraint_rows',
-           'RESIDUAL_TOLERANCE']
+           'warm_up', 'RESIDUAL_TOLERANCE']
 
 #: The one contact residual tolerance [m] of the package: the non-linear step stops there and
 #: every later check (optimal step, acceptance in correct_pose) uses the same value.
@@ -73,11 +73,184 @@ def constraint_rows(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.hstack([cross3(P, F), F])
 
 
+try:  # the compiled iteration (same steps as the Python loop below, which stays the reference)
+    import numba
+
+    @numba.njit(cache=True, fastmath=False, error_model='numpy')
+    def _rot_about(w: np.ndarray, angle: float) -> np.ndarray:  # pragma: no cover
+        """Rotate by angle about w: rotation_about_axis (Rodrigues, axis normalised here)."""
+        n = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+        a0, a1, a2 = w[0] / n, w[1] / n, w[2] / n
+        K = np.array([[0.0, -a2, a1], [a2, 0.0, -a0], [-a1, a0, 0.0]])
+        return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
+
+    @numba.njit(cache=True, fastmath=False, error_model='numpy')
+    def _rot_log(R: np.ndarray) -> np.ndarray:  # pragma: no cover
+        """Return rotation_log of stereo_manip_tools.transforms (same branches)."""
+        c = min(max((R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0, -1.0), 1.0)
+        theta = np.arccos(c)
+        w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+        if theta < 1e-7:
+            return 0.5 * w
+        if np.pi - theta < 1e-4:
+            B = ((R + R.T) / 2.0 - c * np.eye(3)) / (1.0 - c)
+            i = int(np.argmax(np.diag(B)))
+            axis = B[:, i] / np.sqrt(max(B[i, i], 1e-300))
+            if axis[0] * w[0] + axis[1] * w[1] + axis[2] * w[2] < 0:
+                axis = -axis
+            return axis / np.linalg.norm(axis) * theta
+        return w * (theta / (2.0 * np.sin(theta)))
+
+    @numba.njit(cache=True, fastmath=False, error_model='numpy')
+    def _evaluate(T, vf, vf_x, vf_n, vf_off, fv, fv_w, fv_n, fv_off, ee, ee_a, ee_em, ee_b,
+                  ee_ef, ee_sg, d, P, N):  # pragma: no cover
+        """Evaluate like ContactEvaluator.__call__ into d, P, N; -1 or the parallel ee row."""
+        R = T[:3, :3]
+        t = T[:3, 3]
+        for j in range(len(vf)):
+            k = vf[j]
+            acc = 0.0
+            for i in range(3):
+                x = R[i, 0] * vf_x[j, 0] + R[i, 1] * vf_x[j, 1] + R[i, 2] * vf_x[j, 2] + t[i]
+                P[k, i] = x
+                N[k, i] = vf_n[j, i]
+                acc += vf_n[j, i] * x
+            d[k] = acc - vf_off[j]
+        for j in range(len(fv)):
+            k = fv[j]
+            nm = np.empty(3)
+            for i in range(3):
+                nm[i] = R[i, 0] * fv_n[j, 0] + R[i, 1] * fv_n[j, 1] + R[i, 2] * fv_n[j, 2]
+            off = fv_off[j] + (nm[0] * t[0] + nm[1] * t[1] + nm[2] * t[2])
+            d[k] = (nm[0] * fv_w[j, 0] + nm[1] * fv_w[j, 1] + nm[2] * fv_w[j, 2]) - off
+            for i in range(3):
+                P[k, i] = fv_w[j, i]
+                N[k, i] = -nm[i]
+        bad, smin = -1, np.inf
+        for j in range(len(ee)):
+            k = ee[j]
+            a = np.empty(3)
+            em = np.empty(3)
+            for i in range(3):
+                a[i] = R[i, 0] * ee_a[j, 0] + R[i, 1] * ee_a[j, 1] + R[i, 2] * ee_a[j, 2] + t[i]
+                em[i] = R[i, 0] * ee_em[j, 0] + R[i, 1] * ee_em[j, 1] + R[i, 2] * ee_em[j, 2]
+            ef = ee_ef[j]
+            c0 = em[1] * ef[2] - em[2] * ef[1]
+            c1 = em[2] * ef[0] - em[0] * ef[2]
+            c2 = em[0] * ef[1] - em[1] * ef[0]
+            s = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            if s < 1e-9 and s < smin:
+                bad, smin = j, s
+            n0, n1, n2 = ee_sg[j] * c0 / s, ee_sg[j] * c1 / s, ee_sg[j] * c2 / s
+            w0, w1, w2 = a[0] - ee_b[j, 0], a[1] - ee_b[j, 1], a[2] - ee_b[j, 2]
+            d[k] = n0 * w0 + n1 * w1 + n2 * w2
+            B = em[0] * ef[0] + em[1] * ef[1] + em[2] * ef[2]
+            u = ((ef[0] * w0 + ef[1] * w1 + ef[2] * w2)
+                 - B * (em[0] * w0 + em[1] * w1 + em[2] * w2)) / (1.0 - B * B)
+            for i in range(3):
+                P[k, i] = ee_b[j, i] + u * ef[i]
+            N[k, 0], N[k, 1], N[k, 2] = n0, n1, n2
+        return bad
+
+    @numba.njit(cache=True, fastmath=False, error_model='numpy')
+    def _iterate(T_obs, K, vf, vf_x, vf_n, vf_off, fv, fv_w, fv_n, fv_off, ee, ee_a, ee_em,
+                 ee_b, ee_ef, ee_sg, L, schedule, max_iterations, residual_tolerance,
+                 rcond):  # pragma: no cover
+        """Run the loop of correct_nonlinear: (T_best, res_best, it_best, parallel ee row)."""
+        T = T_obs.copy()
+        scale = np.array([1.0 / L, 1.0 / L, 1.0 / L, 1.0, 1.0, 1.0])
+        d = np.zeros(K)
+        P = np.zeros((K, 3))
+        N = np.zeros((K, 3))
+        T_best = T.copy()
+        res_best = np.inf
+        it_best = 0
+        have_best = False
+        it = 0
+        eps = np.finfo(np.float64).eps
+        Ro = T_obs[:3, :3]
+        for mu in schedule:
+            have_first = False
+            first = 0.0
+            n_it = max_iterations if mu == 0.0 else min(max_iterations, 8)
+            for _ in range(n_it):
+                bad = _evaluate(T, vf, vf_x, vf_n, vf_off, fv, fv_w, fv_n, fv_off, ee, ee_a,
+                                ee_em, ee_b, ee_ef, ee_sg, d, P, N)
+                if bad >= 0:
+                    return T_best, res_best, it_best, bad
+                res = np.max(np.abs(d))
+                if mu == 0.0 and (not have_best or res < res_best):
+                    T_best, res_best, it_best, have_best = T.copy(), res, it, True
+                if mu == 0.0 and res <= 1e-3 * residual_tolerance:
+                    break
+                J = np.empty((K, 6))
+                for k in range(K):
+                    J[k, 0] = (P[k, 1] * N[k, 2] - P[k, 2] * N[k, 1]) * scale[0]
+                    J[k, 1] = (P[k, 2] * N[k, 0] - P[k, 0] * N[k, 2]) * scale[1]
+                    J[k, 2] = (P[k, 0] * N[k, 1] - P[k, 1] * N[k, 0]) * scale[2]
+                    J[k, 3] = N[k, 0]
+                    J[k, 4] = N[k, 1]
+                    J[k, 5] = N[k, 2]
+                if mu > 0.0:
+                    e = np.empty(6)
+                    e[:3] = L * _rot_log(np.ascontiguousarray(T[:3, :3])
+                                         @ np.ascontiguousarray(Ro.T))
+                    e[3:] = T[:3, 3] - T_obs[:3, 3]
+                    Jm = np.zeros((K + 6, 6))
+                    Jm[:K] = J
+                    rhs = np.empty(K + 6)
+                    rhs[:K] = -d
+                    for i in range(6):
+                        Jm[K + i, i] = mu
+                        rhs[K + i] = -mu * e[i]
+                    step = np.linalg.lstsq(Jm, rhs, eps * (K + 6))[0]
+                else:
+                    step = np.linalg.lstsq(J, -d, rcond)[0]
+                it += 1
+                step = step * scale
+                ang = np.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
+                if ang > 0.3:
+                    step = step * (0.3 / ang)
+                w = step[:3]
+                angle = np.linalg.norm(w)
+                Rw = _rot_about(w, angle) if angle > 0 else np.eye(3)
+                Tn = np.eye(4)
+                Tn[:3, :3] = Rw @ np.ascontiguousarray(T[:3, :3])
+                Tn[:3, 3] = Rw @ np.ascontiguousarray(T[:3, 3]) + step[3:]
+                T = Tn
+                size = np.linalg.norm(step / scale)
+                if not have_first:
+                    first, have_first = size, True
+                if mu > 0.0 and size < 1e-2 * first:
+                    break
+        return T_best, res_best, it_best, -1
+
+    _HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - numba is in the environment
+    _HAVE_NUMBA = False
+
+
+def warm_up() -> None:
+    """
+    Compile the iteration now (or load it from numba's disk cache).
+
+    With a cold cache the first compiled call costs ~30 s CPU (once per source tree: the
+    bootstrap calls this after a build), loading it from the cache ~0.1 s.
+    """
+    if not _HAVE_NUMBA:
+        return
+    z3, z1, i0 = np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64)
+    _iterate(np.eye(4), 1, np.zeros(1, dtype=np.int64), np.zeros((1, 3)),
+             np.array([[0.0, 0.0, 1.0]]), np.array([-1e-3]), i0, z3, z3, z1, i0, z3, z3, z3,
+             z3, z1, 0.1, np.array([3e-2, 0.0]), 5, 1e-9, 1e-6)
+
+
 def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.ndarray,
                       pairs: Sequence[ContactPair], max_iterations: int = 30,
                       residual_tolerance: float = RESIDUAL_TOLERANCE,
                       length_scale: float | None = None, rcond: float = 1e-6,
-                      anchor_schedule: tuple = (3e-2, 3e-3)) -> NonlinearResult:
+                      anchor_schedule: tuple = (3e-2, 3e-3),
+                      compiled: bool | None = None) -> NonlinearResult:
     """
     Nearby pose satisfying every contact of ``pairs`` (non-linear step, Takamatsu 2007).
 
@@ -95,6 +268,9 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
     :param anchor_schedule: decreasing weights of the pull towards the observed pose in the
         Levenberg-Marquardt stages run before Gauss-Newton (scaled units).
     :param max_iterations: iteration limit per stage.
+    :param compiled: run the iteration compiled (numba; the same steps, results equal to the
+        Python loop's to rounding); None: when numba is available. False: the Python loop
+        (the reference).
     :returns: the corrected pose; ``converged`` is False when the relation could not be
         satisfied within the iteration limit (e.g. a relation that no pose realises).
     """
@@ -107,6 +283,21 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
     best = None
     it = 0
     evaluate = ContactEvaluator(moving, fixed, pairs)
+    if _HAVE_NUMBA if compiled is None else compiled:
+        e = evaluate
+        z3, z1 = np.zeros((0, 3)), np.zeros(0)
+        T_best, res_best, it_best, bad = _iterate(
+            T_obs, len(e.pairs), e.vf, getattr(e, 'vf_x', z3), getattr(e, 'vf_n', z3),
+            getattr(e, 'vf_off', z1), e.fv, getattr(e, 'fv_w', z3), getattr(e, 'fv_n', z3),
+            getattr(e, 'fv_off', z1), e.ee, getattr(e, 'ee_a', z3), getattr(e, 'ee_em', z3),
+            getattr(e, 'ee_b', z3), getattr(e, 'ee_ef', z3), e.sg, L,
+            np.array(tuple(anchor_schedule) + (0.0,), dtype=float), int(max_iterations),
+            float(residual_tolerance), float(rcond))
+        if bad >= 0:
+            raise ValueError(f'edge-edge pair ({e.pairs[e.ee[bad]]}) has parallel edges at '
+                             'this pose')
+        return NonlinearResult(T_best, float(res_best), int(it_best),
+                               bool(res_best <= residual_tolerance))
     # Levenberg-Marquardt anchored at the observation, with continuation of the anchor weight
     # mu -> 0, then plain Gauss-Newton. Directions that are free at the solution (sliding
     # along a hole) look weakly constrained at a noisy, tilted pose; the anchor keeps the

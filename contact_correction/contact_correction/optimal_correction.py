@@ -49,6 +49,7 @@ from .contact_relation import (
     ContactEvaluator, ContactGeometry, ContactPair, EDGE, evaluate_contacts, FACE, VERTEX)
 from .nonlinear_correction import constraint_rows
 from .polyhedron import cross3, Polyhedron
+from .small_linalg import svd
 
 __all__ = [
     'ConstraintDirections',
@@ -57,6 +58,7 @@ __all__ = [
     'rotational_constraint',
     'rotational_constraint_rank',
     'constraint_directions',
+    'scaled_singular_values',
     'optimal_orientation_rank2',
     'optimal_orientation_edge_on_face',
     'optimal_orientation_face_on_edge',
@@ -127,7 +129,7 @@ def _orth_split(M: np.ndarray, tol: float) -> Tuple[np.ndarray, np.ndarray]:
     """Orthonormal bases (rows) of the row space and of the null space of ``M`` (., 3)."""
     if M.size == 0:
         return np.zeros((0, 3)), np.eye(3)
-    _, s, Vt = np.linalg.svd(M)
+    _, s, Vt = svd(M)
     r = int(np.sum(s > tol * max(1.0, s[0] if len(s) else 1.0)))
     return Vt[:r], Vt[r:]
 
@@ -148,7 +150,7 @@ def rotational_constraint(A: np.ndarray, length_scale: float = 1.0,
     if len(A) == 0:
         return np.zeros((0, 3))
     A0, A1 = A[:, :3] / length_scale, A[:, 3:]
-    U, s, _ = np.linalg.svd(A1, full_matrices=False)
+    U, s, _ = svd(A1, full_matrices=False)
     U1 = U[:, s > tol]
     G = A0 - U1 @ (U1.T @ A0)
     g, _ = _orth_split(G, tol)
@@ -161,15 +163,29 @@ def rotational_constraint_rank(A: np.ndarray, length_scale: float = 1.0,
     return len(rotational_constraint(A, length_scale, tol))
 
 
+def scaled_singular_values(A: np.ndarray, length_scale: float = 1.0) -> np.ndarray:
+    """Singular values of Eq. 2's matrix ``A`` (K, 6), rotation columns / ``length_scale``."""
+    A = np.asarray(A, dtype=float).reshape(-1, 6)
+    return svd(np.hstack([A[:, :3] / length_scale, A[:, 3:]]), compute_uv=False)
+
+
 def constraint_directions(A: np.ndarray, length_scale: float = 1.0,
-                          tol: float = RANK_TOLERANCE) -> ConstraintDirections:
-    """Constrained and free translation directions and rotation axes of Eq. 2's matrix ``A``."""
+                          tol: float = RANK_TOLERANCE,
+                          singular_values: Optional[np.ndarray] = None
+                          ) -> ConstraintDirections:
+    """
+    Constrained and free translation directions and rotation axes of Eq. 2's matrix ``A``.
+
+    :param singular_values: ``scaled_singular_values(A, length_scale)`` when the caller has
+        them already (the same values; not computed again).
+    """
     A = np.asarray(A, dtype=float).reshape(-1, 6)
     ct, ft = _orth_split(A[:, 3:], tol)
     g = rotational_constraint(A, length_scale, tol)
     _, fr = _orth_split(g, tol) if len(g) else (None, np.eye(3))
     if len(A):
-        s = np.linalg.svd(np.hstack([A[:, :3] / length_scale, A[:, 3:]]), compute_uv=False)
+        s = scaled_singular_values(A, length_scale) if singular_values is None \
+            else singular_values
         crank = int(np.sum(s > tol * max(1.0, s[0])))
     else:
         crank = 0
@@ -317,7 +333,7 @@ def optimal_orientation_numerical(moving: Polyhedron, fixed: Polyhedron, T_rel_E
 def _line_fit(points: np.ndarray, tol: float) -> Optional[Tuple[np.ndarray, np.ndarray]]:
     """(point, unit direction) of the line through ``points`` if they are collinear."""
     c = points.mean(0)
-    _, s, Vt = np.linalg.svd(points - c)
+    _, s, Vt = svd(points - c)
     if len(points) < 2 or s[0] < tol or (len(s) > 1 and s[1] > tol):
         return None
     return c, Vt[0]
@@ -374,7 +390,8 @@ def classify_rank1(moving: Polyhedron, fixed: Polyhedron, T_rel_S: np.ndarray,
 
 def optimal_translation(moving: Polyhedron, fixed: Polyhedron, R_opt: np.ndarray,
                         t_observed: np.ndarray, pairs: Sequence[ContactPair],
-                        tol: float = RANK_TOLERANCE) -> Tuple[np.ndarray, float, np.ndarray]:
+                        tol: float = RANK_TOLERANCE, free_directions: bool = True
+                        ) -> Tuple[np.ndarray, float, Optional[np.ndarray]]:
     """
     Least-squares translation restricted to the contact constraints.
 
@@ -382,22 +399,25 @@ def optimal_translation(moving: Polyhedron, fixed: Polyhedron, R_opt: np.ndarray
     solution ``t = t_E - F^+ d(t_E)`` changes ``t_E`` only within ``span{f_i}`` so the
     component along every free translation direction is exactly the observed one.
 
+    :param free_directions: also return the free translation directions (False: None in
+        their place, one SVD less).
     :returns: the translation [m] (3,), the largest |distance| there [m], and the free
         translation directions (rows).
     """
     t_E = np.asarray(t_observed, dtype=float).reshape(3)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R_opt, t_E
-    g = evaluate_contacts(moving, fixed, T, pairs)
+    evaluate = ContactEvaluator(moving, fixed, pairs)
+    g = evaluate(T)
     F = g.normals
-    U, s, Vt = np.linalg.svd(F, full_matrices=False)
+    U, s, Vt = svd(F, full_matrices=False)
     keep = s > tol * max(1.0, s[0])
     # pseudo-inverse restricted to the well-determined directions
     dt = -(Vt[keep].T @ ((U[:, keep].T @ g.distances) / s[keep]))
     t = t_E + dt
     T[:3, 3] = t
-    res = float(np.max(np.abs(evaluate_contacts(moving, fixed, T, pairs).distances)))
-    return t, res, _orth_split(F, tol)[1]
+    res = float(np.max(np.abs(evaluate(T).distances)))
+    return t, res, _orth_split(F, tol)[1] if free_directions else None
 
 
 def _orientation_rule(moving: Polyhedron, fixed: Polyhedron, T_rel_E: np.ndarray,
@@ -461,7 +481,8 @@ def correct_optimal(moving: Polyhedron, fixed: Polyhedron, T_rel_E: np.ndarray,
     for k in range(refine + 1):
         R_opt, method, dirs, case = _orientation_rule(moving, fixed, T_rel_E, S, pairs,
                                                       rank1_method, case)
-        t_opt, res, _ = optimal_translation(moving, fixed, R_opt, T_rel_E[:3, 3], pairs)
+        t_opt, res, _ = optimal_translation(moving, fixed, R_opt, T_rel_E[:3, 3], pairs,
+                                            free_directions=False)
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R_opt, t_opt
         if best is not None and res > max(residual_tolerance, best[3]):

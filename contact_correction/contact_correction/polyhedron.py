@@ -115,78 +115,126 @@ def winding_number(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
 try:  # compiled kernels for the per-frame queries; the numpy versions above are the fallback
     import numba
 
+    @numba.njit(cache=True, fastmath=False, inline='always')
+    def _tri_dist(px: float, py: float, pz: float, T: np.ndarray,
+                  j: int) -> float:  # pragma: no cover
+        """Distance from the point (px, py, pz) to triangle ``T[j]`` (3, 3)."""
+        ax, ay, az = T[j, 0, 0], T[j, 0, 1], T[j, 0, 2]
+        bx, by, bz = T[j, 1, 0], T[j, 1, 1], T[j, 1, 2]
+        cx, cy, cz = T[j, 2, 0], T[j, 2, 1], T[j, 2, 2]
+        abx, aby, abz = bx - ax, by - ay, bz - az
+        acx, acy, acz = cx - ax, cy - ay, cz - az
+        nx = aby * acz - abz * acy
+        ny = abz * acx - abx * acz
+        nz = abx * acy - aby * acx
+        nn = nx * nx + ny * ny + nz * nz
+        apx, apy, apz = px - ax, py - ay, pz - az
+        d = np.inf
+        if nn > 0.0:
+            # barycentric (v, w) of the projection
+            qx = apy * acz - apz * acy
+            qy = apz * acx - apx * acz
+            qz = apx * acy - apy * acx
+            v = (qx * nx + qy * ny + qz * nz) / nn
+            rx = aby * apz - abz * apy
+            ry = abz * apx - abx * apz
+            rz = abx * apy - aby * apx
+            w = (rx * nx + ry * ny + rz * nz) / nn
+            if v >= 0.0 and w >= 0.0 and v + w <= 1.0:
+                d = abs(apx * nx + apy * ny + apz * nz) / np.sqrt(nn)
+        if d == np.inf:
+            for k in range(3):
+                ox, oy, oz = T[j, k, 0], T[j, k, 1], T[j, k, 2]
+                ex = T[j, (k + 1) % 3, 0] - ox
+                ey = T[j, (k + 1) % 3, 1] - oy
+                ez = T[j, (k + 1) % 3, 2] - oz
+                ee = ex * ex + ey * ey + ez * ez
+                sx, sy, sz = px - ox, py - oy, pz - oz
+                u = 0.0
+                if ee > 0.0:
+                    u = (sx * ex + sy * ey + sz * ez) / ee
+                    u = min(1.0, max(0.0, u))
+                dx, dy, dz = sx - u * ex, sy - u * ey, sz - u * ez
+                dd = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if dd < d:
+                    d = dd
+        return d
+
     @numba.njit(cache=True, fastmath=False)
     def _min_dist_kernel(P: np.ndarray, T: np.ndarray) -> np.ndarray:  # pragma: no cover
         n, m = P.shape[0], T.shape[0]
         out = np.empty(n)
         for i in range(n):
             best = np.inf
-            px, py, pz = P[i, 0], P[i, 1], P[i, 2]
             for j in range(m):
-                ax, ay, az = T[j, 0, 0], T[j, 0, 1], T[j, 0, 2]
-                bx, by, bz = T[j, 1, 0], T[j, 1, 1], T[j, 1, 2]
-                cx, cy, cz = T[j, 2, 0], T[j, 2, 1], T[j, 2, 2]
-                abx, aby, abz = bx - ax, by - ay, bz - az
-                acx, acy, acz = cx - ax, cy - ay, cz - az
-                nx = aby * acz - abz * acy
-                ny = abz * acx - abx * acz
-                nz = abx * acy - aby * acx
-                nn = nx * nx + ny * ny + nz * nz
-                apx, apy, apz = px - ax, py - ay, pz - az
-                d = np.inf
-                if nn > 0.0:
-                    # barycentric (v, w) of the projection
-                    qx = apy * acz - apz * acy
-                    qy = apz * acx - apx * acz
-                    qz = apx * acy - apy * acx
-                    v = (qx * nx + qy * ny + qz * nz) / nn
-                    rx = aby * apz - abz * apy
-                    ry = abz * apx - abx * apz
-                    rz = abx * apy - aby * apx
-                    w = (rx * nx + ry * ny + rz * nz) / nn
-                    if v >= 0.0 and w >= 0.0 and v + w <= 1.0:
-                        d = abs(apx * nx + apy * ny + apz * nz) / np.sqrt(nn)
-                if d == np.inf:
-                    for k in range(3):
-                        ox, oy, oz = T[j, k, 0], T[j, k, 1], T[j, k, 2]
-                        ex = T[j, (k + 1) % 3, 0] - ox
-                        ey = T[j, (k + 1) % 3, 1] - oy
-                        ez = T[j, (k + 1) % 3, 2] - oz
-                        ee = ex * ex + ey * ey + ez * ez
-                        sx, sy, sz = px - ox, py - oy, pz - oz
-                        u = 0.0
-                        if ee > 0.0:
-                            u = (sx * ex + sy * ey + sz * ez) / ee
-                            u = min(1.0, max(0.0, u))
-                        dx, dy, dz = sx - u * ex, sy - u * ey, sz - u * ez
-                        dd = np.sqrt(dx * dx + dy * dy + dz * dz)
-                        if dd < d:
-                            d = dd
+                d = _tri_dist(P[i, 0], P[i, 1], P[i, 2], T, j)
                 if d < best:
                     best = d
             out[i] = best
         return out
 
     @numba.njit(cache=True, fastmath=False)
-    def _winding_kernel(P: np.ndarray, T: np.ndarray) -> np.ndarray:  # pragma: no cover
-        n, m = P.shape[0], T.shape[0]
+    def _face_dist_kernel(P: np.ndarray, faces: np.ndarray, start: np.ndarray,
+                          count: np.ndarray, tri_index: np.ndarray,
+                          T: np.ndarray) -> np.ndarray:  # pragma: no cover
+        """Distance from each point ``P[i]`` to the triangles of its face ``faces[i]``."""
+        n = P.shape[0]
         out = np.empty(n)
         for i in range(n):
-            acc = 0.0
-            for j in range(m):
-                ax, ay, az = T[j, 0, 0] - P[i, 0], T[j, 0, 1] - P[i, 1], T[j, 0, 2] - P[i, 2]
-                bx, by, bz = T[j, 1, 0] - P[i, 0], T[j, 1, 1] - P[i, 1], T[j, 1, 2] - P[i, 2]
-                cx, cy, cz = T[j, 2, 0] - P[i, 0], T[j, 2, 1] - P[i, 1], T[j, 2, 2] - P[i, 2]
-                la = np.sqrt(ax * ax + ay * ay + az * az)
-                lb = np.sqrt(bx * bx + by * by + bz * bz)
-                lc = np.sqrt(cx * cx + cy * cy + cz * cz)
-                det = (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
-                       + az * (bx * cy - by * cx))
-                den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
-                       + (ax * cx + ay * cy + az * cz) * lb + (bx * cx + by * cy + bz * cz) * la)
-                acc += 2.0 * np.arctan2(det, den)
-            out[i] = acc / (4.0 * np.pi)
+            best = np.inf
+            f = faces[i]
+            for r in range(start[f], start[f] + count[f]):
+                d = _tri_dist(P[i, 0], P[i, 1], P[i, 2], T, tri_index[r])
+                if d < best:
+                    best = d
+            out[i] = best
         return out
+
+    @numba.njit(cache=True, fastmath=False, inline='always')
+    def _winding_at(px: float, py: float, pz: float,
+                    T: np.ndarray) -> float:  # pragma: no cover
+        """Winding number of the triangles ``T`` (M, 3, 3) at the point (px, py, pz)."""
+        acc = 0.0
+        for j in range(T.shape[0]):
+            ax, ay, az = T[j, 0, 0] - px, T[j, 0, 1] - py, T[j, 0, 2] - pz
+            bx, by, bz = T[j, 1, 0] - px, T[j, 1, 1] - py, T[j, 1, 2] - pz
+            cx, cy, cz = T[j, 2, 0] - px, T[j, 2, 1] - py, T[j, 2, 2] - pz
+            la = np.sqrt(ax * ax + ay * ay + az * az)
+            lb = np.sqrt(bx * bx + by * by + bz * bz)
+            lc = np.sqrt(cx * cx + cy * cy + cz * cz)
+            det = (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
+                   + az * (bx * cy - by * cx))
+            den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
+                   + (ax * cx + ay * cy + az * cz) * lb + (bx * cx + by * cy + bz * cz) * la)
+            acc += 2.0 * np.arctan2(det, den)
+        return acc / (4.0 * np.pi)
+
+    @numba.njit(cache=True, fastmath=False)
+    def _winding_kernel(P: np.ndarray, T: np.ndarray) -> np.ndarray:  # pragma: no cover
+        n = P.shape[0]
+        out = np.empty(n)
+        for i in range(n):
+            out[i] = _winding_at(P[i, 0], P[i, 1], P[i, 2], T)
+        return out
+
+    @numba.njit(cache=True, fastmath=False)
+    def _depth_kernel(P: np.ndarray, lo: np.ndarray, hi: np.ndarray, T: np.ndarray,
+                      threshold: float) -> float:  # pragma: no cover
+        """Deepest of the points inside the box and the surface ``T`` (winding > threshold)."""
+        depth = 0.0
+        for i in range(P.shape[0]):
+            px, py, pz = P[i, 0], P[i, 1], P[i, 2]
+            if not (lo[0] <= px <= hi[0] and lo[1] <= py <= hi[1] and lo[2] <= pz <= hi[2]):
+                continue
+            if _winding_at(px, py, pz, T) > threshold:
+                best = np.inf
+                for j in range(T.shape[0]):
+                    d = _tri_dist(px, py, pz, T, j)
+                    if d < best:
+                        best = d
+                if best > depth:
+                    depth = best
+        return depth
 
     _HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - numba is in the environment; keep working without it
@@ -336,6 +384,7 @@ class Polyhedron:
         self._samples: Dict[float, np.ndarray] = {}
         self._vertex_edge_table: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
         self._vertex_face_table: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+        self._face_tri_table: Optional[tuple] = None
 
     def vertex_edge_table(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """
@@ -399,6 +448,57 @@ class Polyhedron:
     def face_distance(self, face: int, points: np.ndarray) -> np.ndarray:
         """Distance [m] from points (N, 3) to the planar region of ``face`` (not its plane)."""
         return min_triangle_distance(points, self._face_tris[face])
+
+    def faces_distance(self, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """
+        Distance [m] from each point to the planar region of its own face.
+
+        ``faces_distance(faces, points)[i] == face_distance(faces[i], points[i:i + 1])[0]``
+        (the same arithmetic), for many faces in one call.
+
+        :param faces: face index per point, shape (N,).
+        :param points: query points [m], shape (N, 3).
+        :returns: distances [m], shape (N,).
+        """
+        faces = np.asarray(faces, dtype=np.int64).reshape(-1)
+        P = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+        if not _HAVE_NUMBA:
+            out = np.empty(len(P))
+            for f in np.unique(faces):
+                sel = faces == f
+                out[sel] = self.face_distance(int(f), P[sel])
+            return out
+        if self._face_tri_table is None:
+            count = np.array([len(t) for t in self.face_triangles], dtype=np.int64)
+            start = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+            index = np.concatenate(self.face_triangles).astype(np.int64) if len(count) \
+                else np.zeros(0, dtype=np.int64)
+            self._face_tri_table = (start, count, index,
+                                    np.ascontiguousarray(self.tri_corners, dtype=float))
+        start, count, index, tris = self._face_tri_table
+        return _face_dist_kernel(P, faces, start, count, index, tris)
+
+    def penetration_of(self, points: np.ndarray, threshold: float) -> float:
+        """
+        Return the largest distance [m] to the surface of the points inside the solid, or 0.
+
+        A point is inside when it lies in the bounding box and the winding number there
+        exceeds ``threshold``; the same tests and values as ``in_bbox``, :meth:`contains`
+        and :meth:`distance_to_surface` (one compiled pass).
+
+        :param points: query points [m], shape (N, 3).
+        """
+        P = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+        if not _HAVE_NUMBA or len(self.tri_corners) == 0:
+            P = P[self.in_bbox(P)]
+            if len(P) == 0:
+                return 0.0
+            inside = self.contains(P) > threshold
+            return float(self.distance_to_surface(P[inside]).max()) if np.any(inside) \
+                else 0.0
+        return float(_depth_kernel(P, self.bbox_min, self.bbox_max,
+                                   np.ascontiguousarray(self.tri_corners, dtype=float),
+                                   float(threshold)))
 
     def face_point(self, face: int) -> np.ndarray:
         """Return a point [m] on ``face`` (its first triangle's first corner)."""

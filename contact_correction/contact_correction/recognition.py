@@ -40,6 +40,7 @@ All quantities are in the fixed object's model frame, metres and radians.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import compress
 import math
 from typing import Dict, FrozenSet, Hashable, List, Optional, Sequence, Tuple
 
@@ -48,6 +49,7 @@ import numpy as np
 from .contact_relation import (
     ContactPair, detect_contact_relation, EDGE, evaluate_contacts, FACE, relative_pose, VERTEX)
 from .polyhedron import cross3, Polyhedron
+from .small_linalg import eigvalsh, solve
 
 __all__ = ['RecognitionOptions', 'Hypothesis', 'FrameCandidates', 'RelationRecognizer',
            'RelationTracker', 'recognise_track', 'group_key', 'common_state']
@@ -520,7 +522,7 @@ class RelationRecognizer:
             dd += gdd
             Nc += gNc
         if state:
-            w = np.linalg.eigvalsh(Nc)
+            w = eigvalsh(Nc)
             rank = int(np.count_nonzero(w > 1e-4 * max(w[-1], 1e-300)))
         else:
             rank = 0
@@ -533,7 +535,7 @@ class RelationRecognizer:
             if not active.any():
                 chi2, delta = 0.0, np.zeros(6)
             else:
-                y = np.linalg.solve(N + s2I, b)
+                y = solve(N + s2I, b)
                 chi2 = float(max(dd - b @ y, 0.0) / s2)
                 delta = -y
             r = d + A @ delta
@@ -546,7 +548,7 @@ class RelationRecognizer:
             b = b + (A[idx] * d[idx, None]).sum(0)
             dd += float(d[idx] @ d[idx])
             pushed = int(np.count_nonzero(active & ~mask))
-        h = Hypothesis(state, tuple(p for p, m in zip(fc.pool, mask) if m), chi2, rank,
+        h = Hypothesis(state, tuple(compress(fc.pool, mask.tolist())), chi2, rank,
                        chi2 + self.penalty * (6 - rank), pushed)
         fc.hypotheses[state] = h
         return h

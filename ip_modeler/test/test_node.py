@@ -1,5 +1,6 @@
 """ip_modeler_node: in-process (rclpy) and as an installed executable (own process)."""
 
+import os
 
 from ip_modeler.conversions import cloud_to_points, model_to_msg, msg_to_model
 from ip_modeler.evaluation import distance_to_zero_set
@@ -153,6 +154,56 @@ def test_min_fit_interval_skips_clouds_and_warm_start_keeps_the_model(ros_node):
         node.destroy_node()
 
 
+def _torus_view(seed, R=np.eye(3), noise=0.0003):
+    """Sample the half of a torus (axis z before ``R``) facing a viewer, 0.3 mm noise."""
+    from ip_modeler.shapes import add_noise, visible_half
+    rng = np.random.default_rng(seed)
+    P, N = sample_shape('torus', 3000, SIZE, rng)
+    P, N = visible_half(P @ R.T, N @ R.T)
+    return add_noise(P, noise, rng) + CENTRE
+
+
+@pytest.mark.ros
+def test_refit_ratio_skips_a_cloud_the_last_model_still_fits(ros_node):
+    """
+    An object that has not changed in the cloud frame is not fitted again.
+
+    Another sample of the same torus turned about its own axis (the same surface, new points
+    and noise) is explained by the last model as well as its own points: skipped, nothing
+    published, and the last model does describe it (true distance RMS < 1 mm). The torus
+    tilted by 0.5 rad is a new surface: fitted again.
+    """
+    from stereo_manip_tools.transforms import rotation_about_axis
+    node = IpModelerNode(context=ros_node.context, parameter_overrides=[
+        Parameter('target_rms', value=0.0005), Parameter('mesh_resolution', value=32),
+        Parameter('refit_ratio', value=1.5), Parameter('use_cloud_normals', value=False)])
+    try:
+        polys = []
+        ros_node.create_subscription(ImplicitPolynomial, 'implicit_polynomial', polys.append,
+                                     10)
+        pub = ros_node.create_publisher(PointCloud2, 'cloud', 10)
+        assert _spin_both([ros_node, node], lambda: pub.get_subscription_count() > 0)
+        header = Header(frame_id='stereo_left_optical')
+        first = _torus_view(0)
+        pub.publish(xyz_to_pointcloud2(first, header))
+        assert _spin_both([ros_node, node], lambda: len(polys) >= 1)
+        spun = _torus_view(1, rotation_about_axis([0.0, 0.0, 1.0], 0.7))
+        pub.publish(xyz_to_pointcloud2(spun, header))
+        assert _spin_both([ros_node, node], lambda: node.counts['clouds'] >= 2)
+        assert node.counts['skipped_unchanged'] == 1 and node.counts['fitted'] == 1
+        d = distance_to_zero_set(msg_to_model(polys[0]), spun)
+        assert np.sqrt(np.mean(d ** 2)) < 0.001
+        tilted = _torus_view(2, rotation_about_axis([1.0, 0.0, 0.0], 0.5))
+        pub.publish(xyz_to_pointcloud2(tilted, header))
+        assert _spin_both([ros_node, node], lambda: len(polys) >= 2)
+        assert node.counts['skipped_unchanged'] == 1 and node.counts['fitted'] == 2
+        assert polys[1].rms_distance < 0.001 and 'skipped_unchanged 1' in polys[1].status
+        d = distance_to_zero_set(msg_to_model(polys[0]), tilted)
+        assert np.sqrt(np.mean(d ** 2)) > 0.002          # the old model does not fit it
+    finally:
+        node.destroy_node()
+
+
 def _call(node, server, request, timeout=30.0):
     nodes = [node] + ([server] if server is not None else [])
     return call_service(nodes, FitImplicitPolynomial, 'fit_implicit_polynomial', request, timeout)
@@ -182,8 +233,14 @@ def test_service_fits_with_request_limits(ros_node, modeler):
 def test_installed_executable_serves_and_streams(ros_node):
     P, N, cloud = _cloud('ellipsoid', n=1000)
     with start_executable('ip_modeler', 'ip_modeler_node',
-                          ros_args=['-p', 'target_rms:=0.0005', '-p', 'mesh_resolution:=32'],
+                          ros_args=['-p', 'target_rms:=0.0005', '-p', 'mesh_resolution:=32',
+                                    '-p', 'nice:=5'],
                           observer=ros_node, wait_for_node='ip_modeler', timeout=60) as proc:
+        # its own, lower scheduling priority (the executable is the node's process; the node
+        # joins the graph before it lowers its priority, and logs after)
+        assert proc.wait_for_output('nice', 30), proc.output()
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, proc.process.pid) == min(own + 5, 19)
         res = _call(ros_node, None, FitImplicitPolynomial.Request(cloud=cloud))
         assert res.success, proc.output()
         assert res.model.degree == 2 and res.model.rms_distance < 0.0005

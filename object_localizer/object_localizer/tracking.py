@@ -10,8 +10,10 @@ Per cloud and object (:meth:`ObjectTracker.update`):
    source; the model samples expected visible at the prediction, with their exact normals, are
    the target — so no scene normals are estimated, and every iteration is cheap. Stopping
    criteria are relative changes of 1e-6 (not 1e-9), small steps, and steps that no longer
-   change the residuals (a slide along a symmetry of the model). The crops (the rays through
-   the object, the points near it) are single compiled passes over the cloud (``crop.py``).
+   change the residuals; the step never turns the model about a continuous symmetry axis
+   (a torus', a cylinder's; any axis of a sphere), which no residual observes. The crops (the
+   rays through the object, the points near it) are single compiled passes over the cloud
+   (``crop.py``).
 3. **Quality check** (:func:`check_pose`), visibility-aware: the model is z-buffered at the pose
    into a range image built from the scene points along the same rays. Each model sample the
    sensor should see (facing it, not hidden by the model itself) is compared with the observed
@@ -51,6 +53,7 @@ import numpy as np
 from object_localizer.crop import crop_near, crop_rays, crop_window, nearest_depth_image
 from object_localizer.localization import localize, ModelTemplate, prepare_model, sample_surface
 from object_localizer.point_to_plane import icp_point_to_plane
+from object_localizer.symmetry import find_symmetries
 import open3d as o3d
 from stereo_manip_tools.mesh_io import PolygonMesh
 from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
@@ -84,11 +87,10 @@ class TrackerSettings:
         refines (0.1 mm / 0.1 mrad: its last micrometre steps are redone by the last stage).
     :ivar icp_min_residual_step: the last ICP stage also stops when its step changes the
         point-to-plane residuals by less than this [m] (weighted RMS ``sqrt(x' A x / sum w)``,
-        A the normal matrix): converged in every direction the correspondences observe; a
-        spin of an exactly symmetric surface (a torus about its axis) changes no residual and
-        would otherwise run to ``icp_iterations``. 1 um leaves every peg pose of
-        ``bench/localizer_tracking.py`` unchanged; on the sampled models of the live clouds it
-        rarely fires (their samples are not exactly symmetric).
+        A the normal matrix): converged in every direction the correspondences observe. 1 um
+        leaves every peg pose of ``bench/localizer_tracking.py`` unchanged. (A turn about a
+        continuous symmetry axis, which changes no residual, is not left to this test: the
+        ICP never turns about ``TrackingModel.symmetry_axes``.)
     :ivar icp_coarse_min_residual_step: the same for the first stage. Measured on the peg
         sequence: 1e-4 m (the first stage's ``min_step``) saved a fifth of the CPU but stopped
         the wide first stage early enough to change where the last one converged (ADD-S mean
@@ -199,6 +201,10 @@ class TrackingModel:
     :ivar radius: radius [m] of the bounding sphere about ``centre``.
     :ivar probe: a few hundred of ``points`` for displacement measures.
     :ivar interior: a few hundred points inside the model [m] (for penetration tests).
+    :ivar symmetry_axes: (K, 3) unit axes [model frame] of continuous rotational symmetry
+        (:func:`object_localizer.symmetry.find_symmetries`: one for a torus or a cylinder,
+        three for a sphere, none for a cube): the tracking ICP never turns the model about
+        them (a turn about them is unobservable).
     """
 
     name: str
@@ -214,6 +220,7 @@ class TrackingModel:
     box_min: np.ndarray = field(default_factory=lambda: np.zeros(3))
     box_max: np.ndarray = field(default_factory=lambda: np.zeros(3))
     acquisition: Any = None       # object_localizer.acquisition.AcquisitionModel, built lazily
+    symmetry_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
         """Signed distance [m] of points (M, 3) in the model frame to its surface (< 0 inside)."""
@@ -245,6 +252,11 @@ def prepare_tracking_model(mesh: PolygonMesh, voxel_size: float = 0.003,
                           box_min=P.min(axis=0), box_max=P.max(axis=0))
     box = np.random.default_rng(seed).uniform(P.min(axis=0), P.max(axis=0), size=(4000, 3))
     model.interior = box[model.signed_distance(box) < 0][:400]
+    # continuous symmetry axes only (6-60 ms on the shipped models, 3 mm samples)
+    from object_localizer.verification import sample_model_surface
+    samples = sample_model_surface(mesh, 0.003, max_samples=8000, seed=seed)
+    model.symmetry_axes = find_symmetries(samples.points, samples.spacing,
+                                          discrete=False).continuous_axes
     return model
 
 
@@ -636,9 +648,12 @@ def track_icp(model: TrackingModel, near_points: np.ndarray, start: np.ndarray,
         if len(P) < 3 or len(S) < 3:
             break
         # target frame = sensor; the scene is moved onto the model: T_scene->model_at_pose
+        # never turned about its continuous symmetry axes (in the sensor frame at ``pose``)
         correction, _, _, _ = icp_point_to_plane(S, P, N, reach, scale, s.icp_iterations,
                                                  tolerance=1e-6, min_step=min_step,
-                                                 min_residual_step=min_residual)
+                                                 min_residual_step=min_residual,
+                                                 locked_rotations=model.symmetry_axes
+                                                 @ pose[:3, :3].T)
         pose = np.linalg.solve(correction, pose)
     return pose
 

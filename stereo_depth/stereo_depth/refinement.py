@@ -153,41 +153,87 @@ def remove_speckles(disparity: np.ndarray, max_size: int = 100,
     return out
 
 
+@numba.njit(inline='always', nogil=True)
+def _valid_median(d, y, x, r, buf):
+    # median of the non-NaN values of the (2r+1)^2 window at (y, x) clipped to the image
+    # (insertion sort into buf; an even count takes the mean of the two middle values)
+    h, w = d.shape
+    n = 0
+    for yy in range(max(0, y - r), min(h, y + r + 1)):
+        for xx in range(max(0, x - r), min(w, x + r + 1)):
+            v = d[yy, xx]
+            if not np.isnan(v):
+                k = n
+                while k > 0 and buf[k - 1] > v:
+                    buf[k] = buf[k - 1]
+                    k -= 1
+                buf[k] = v
+                n += 1
+    return buf[n // 2] if n % 2 == 1 else 0.5 * (buf[n // 2 - 1] + buf[n // 2])
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _nan_median(d, r, full, use_full):
-    # full: the plain median of every complete window (OpenCV), used where the whole window
-    # lies inside the image and holds no NaN; other pixels take the median of their valid
-    # neighbours by insertion sort.
+def _nan_median(d, r):
+    # NaN pixels stay NaN; every other pixel takes the median of its window's valid values.
     h, w = d.shape
     out = np.empty_like(d)
     for y in numba.prange(h):
         buf = np.empty((2 * r + 1) * (2 * r + 1), np.float32)
-        inner_y = r <= y < h - r
+        for x in range(w):
+            out[y, x] = np.nan if np.isnan(d[y, x]) else _valid_median(d, y, x, r, buf)
+    return out
+
+
+@numba.njit(inline='always', nogil=True)
+def _sort2(a, b):
+    return min(a, b), max(a, b)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _nan_median3(d):
+    # The 3x3 case of _nan_median in two passes per row: the median of every complete window
+    # by the 19-exchange sorting network of Paeth (Graphics Gems, 1990), vectorised over x
+    # (a window holding a NaN gives NaN through its sum), then the pixels left (image border,
+    # a NaN in the window) by the insertion sort of _valid_median.
+    h, w = d.shape
+    out = np.empty_like(d)
+    for y in numba.prange(h):
+        o = out[y]
+        if 1 <= y < h - 1:
+            r0 = d[y - 1]
+            r1 = d[y]
+            r2 = d[y + 1]
+            for x in range(1, w - 1):
+                p0, p1, p2 = r0[x - 1], r0[x], r0[x + 1]
+                p3, p4, p5 = r1[x - 1], r1[x], r1[x + 1]
+                p6, p7, p8 = r2[x - 1], r2[x], r2[x + 1]
+                s = p0 + p1 + p2 + p3 + p4 + p5 + p6 + p7 + p8
+                p1, p2 = _sort2(p1, p2)
+                p4, p5 = _sort2(p4, p5)
+                p7, p8 = _sort2(p7, p8)
+                p0, p1 = _sort2(p0, p1)
+                p3, p4 = _sort2(p3, p4)
+                p6, p7 = _sort2(p6, p7)
+                p1, p2 = _sort2(p1, p2)
+                p4, p5 = _sort2(p4, p5)
+                p7, p8 = _sort2(p7, p8)
+                p0, p3 = _sort2(p0, p3)
+                p5, p8 = _sort2(p5, p8)
+                p4, p7 = _sort2(p4, p7)
+                p3, p6 = _sort2(p3, p6)
+                p1, p4 = _sort2(p1, p4)
+                p2, p5 = _sort2(p2, p5)
+                p4, p7 = _sort2(p4, p7)
+                p4, p2 = _sort2(p4, p2)
+                p6, p4 = _sort2(p6, p4)
+                p4, p2 = _sort2(p4, p2)
+                o[x] = p4 if not np.isnan(s) else np.float32(np.nan)
+        buf = np.empty(9, np.float32)
         for x in range(w):
             if np.isnan(d[y, x]):
-                out[y, x] = np.nan
-                continue
-            if use_full and inner_y and r <= x < w - r:
-                s = np.float32(0.0)
-                for yy in range(y - r, y + r + 1):
-                    for xx in range(x - r, x + r + 1):
-                        s += d[yy, xx]
-                if not np.isnan(s):     # NaN propagates through the sum
-                    out[y, x] = full[y, x]
-                    continue
-            n = 0
-            for yy in range(max(0, y - r), min(h, y + r + 1)):
-                for xx in range(max(0, x - r), min(w, x + r + 1)):
-                    v = d[yy, xx]
-                    if not np.isnan(v):
-                        # insertion into the sorted prefix buf[:n]
-                        k = n
-                        while k > 0 and buf[k - 1] > v:
-                            buf[k] = buf[k - 1]
-                            k -= 1
-                        buf[k] = v
-                        n += 1
-            out[y, x] = buf[n // 2] if n % 2 == 1 else 0.5 * (buf[n // 2 - 1] + buf[n // 2])
+                o[x] = np.nan
+            elif not (1 <= y < h - 1 and 1 <= x < w - 1) or np.isnan(o[x]):
+                o[x] = _valid_median(d, y, x, 1, buf)
     return out
 
 
@@ -205,13 +251,9 @@ def median_filter(disparity: np.ndarray, size: int = 3) -> np.ndarray:
         raise ValueError(f'median size must be odd and >= 1, got {size}')
     if size == 1:
         return d.copy()
-    if size <= 5:
-        import cv2
-
-        # non-finite -> 0 (np.where: half the CPU of nan_to_num's three passes)
-        full = cv2.medianBlur(np.where(np.isfinite(d), d, np.float32(0.0)), size)
-        return _nan_median(d, size // 2, full, True)
-    return _nan_median(d, size // 2, d, False)     # OpenCV's float median stops at 5x5
+    if size == 3:
+        return _nan_median3(d)
+    return _nan_median(d, size // 2)
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)

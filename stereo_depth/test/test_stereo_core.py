@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from stereo_depth.aggregation import box_aggregate, box_sum_u16
 from stereo_depth.evaluation import evaluate_disparity, nonoccluded_mask
-from stereo_depth.matching_cost import (absolute_difference_cost, census_cost, census_transform,
-                                        quantize_cost, zncc_cost)
+from stereo_depth.matching_cost import (absolute_difference_cost, census_cost, census_planes,
+                                        census_transform, quantize_cost, zncc_cost)
 from stereo_depth.optimization import (belief_propagation, census_block_matching,
                                        semi_global_matching, sgm_disparities, stereo_energy,
                                        winner_take_all, winner_take_all_both)
@@ -68,6 +68,21 @@ def test_census_transform_matches_brute_force():
             bits = [int(pad[y + dy, x + dx] < img[y, x]) for dy in range(3) for dx in range(5)
                     if (dy, dx) != (1, 2)]
             assert int(codes[y, x]) == int(''.join(map(str, bits)), 2)
+
+
+@pytest.mark.parametrize('window', [(5, 5), (3, 3), (5, 3), (7, 7), (9, 7), (1, 1)])
+@pytest.mark.parametrize('kind', ['uint8', 'float', 'rgb'])
+def test_census_planes_are_the_bytes_of_the_census_codes(window, kind):
+    rng = np.random.default_rng(5)
+    img = {'uint8': rng.integers(0, 256, (13, 17)).astype(np.uint8),
+           'float': rng.uniform(0, 255, (13, 17)),
+           'rgb': rng.integers(0, 256, (13, 17, 3)).astype(np.uint8)}[kind]
+    codes = census_transform(img, window)
+    planes = census_planes(img, window)
+    nbits = window[0] * window[1] - 1
+    assert planes.shape == (max(1, (nbits + 7) // 8), 13, 17) and planes.dtype == np.uint8
+    for p in range(planes.shape[0]):
+        np.testing.assert_array_equal(planes[p], (codes >> np.uint64(8 * p)) & np.uint64(255))
 
 
 def test_census_cost_is_hamming_distance():
@@ -314,6 +329,27 @@ def test_speckle_median_and_background_fill():
     np.testing.assert_array_equal(fill_invalid(row), [[7, 3, 3, 3, 3, 9, 9]])
 
 
+@pytest.mark.parametrize('size', [3, 5])
+def test_median_filter_is_the_median_of_the_valid_window_values(size):
+    # brute force: every non-NaN pixel takes np.median of the non-NaN values of its window
+    # clipped to the image (the 3x3 sorting network and its fall-backs included)
+    rng = np.random.default_rng(3)
+    for trial in range(12):
+        h, w = rng.integers(1, 25, 2)
+        d = rng.uniform(0, 60, (h, w)).astype(np.float32)
+        if trial % 2:
+            d = np.round(d)                     # ties
+        d[rng.random((h, w)) < (0.0, 0.05, 0.4)[trial % 3]] = np.nan
+        r = size // 2
+        ref = np.full_like(d, np.nan)
+        for y in range(h):
+            for x in range(w):
+                if not np.isnan(d[y, x]):
+                    win = d[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1]
+                    ref[y, x] = np.median(win[~np.isnan(win)])
+        np.testing.assert_allclose(median_filter(d, size), ref, rtol=0, atol=1e-5)
+
+
 # --- pipeline and evaluation ----------------------------------------------------------------
 
 @pytest.mark.parametrize('method', ['sgm', 'sgm4', 'block_matching', 'bp', 'opencv_sgbm'])
@@ -541,14 +577,43 @@ def test_evaluate_disparity_executable(tmp_path):
     assert bad.returncode == 2 and 'no such file' in bad.stderr
 
 
-@pytest.mark.parametrize('shape, census_window, window', [
-    ((7, 40), (5, 5), (7, 7)), ((9, 50), (5, 5), (3, 9)), ((30, 60), (3, 3), (5, 11)),
-    ((2, 30), (3, 3), (5, 5))])
-def test_fused_block_matching_equals_step_by_step_at_borders(shape, census_window, window):
+@pytest.mark.parametrize('shape, census_window, window, nd', [
+    ((7, 40), (5, 5), (7, 7), 16), ((9, 50), (5, 5), (3, 9), 16),
+    ((30, 60), (3, 3), (5, 11), 16), ((2, 30), (3, 3), (5, 5), 16),
+    ((24, 150), (5, 5), (7, 7), 112), ((20, 90), (9, 7), (5, 5), 33),
+    ((16, 70), (7, 7), (3, 3), 64), ((11, 45), (5, 5), (7, 7), 45)])
+@pytest.mark.parametrize('dtype', [np.float32, np.uint8])
+def test_fused_block_matching_equals_step_by_step_at_borders(shape, census_window, window, nd,
+                                                             dtype):
+    # The fused kernel (census byte planes, candidates padded to a multiple of 32, packed
+    # minima) against the cost volume -> box sums -> WTA path: integer right-view disparities
+    # and the left view's subpixel values exactly equal, on random images.
     rng = np.random.default_rng(7)
-    left = rng.integers(0, 255, shape).astype(np.float32)
-    right = rng.integers(0, 255, shape).astype(np.float32)
-    ref = winner_take_all_both(box_sum_u16(census_cost(left, right, 16, census_window), window))
-    fused = census_block_matching(left, right, 16, census_window, window)
+    left = rng.integers(0, 255, shape).astype(dtype)
+    right = rng.integers(0, 255, shape).astype(dtype)
+    ref = winner_take_all_both(box_sum_u16(census_cost(left, right, nd, census_window), window))
+    fused = census_block_matching(left, right, nd, census_window, window)
     np.testing.assert_array_equal(fused[0], ref[0])
     np.testing.assert_array_equal(fused[1], ref[1])
+
+
+def test_fused_block_matching_uniqueness_and_row_chunks_equal_step_by_step():
+    rng = np.random.default_rng(11)
+    left = rng.integers(0, 255, (26, 80)).astype(np.uint8)
+    right = np.ascontiguousarray(np.roll(left, -5, axis=1))
+    right[:, ::7] = rng.integers(0, 255, (26, 12))       # some ambiguous matches
+    cost = box_sum_u16(census_cost(left, right, 20, (5, 5)), (5, 5))
+    for u in (0.0, 0.05):
+        ref = winner_take_all_both(cost, u)
+        fused = census_block_matching(left, right, 20, (5, 5), (5, 5), uniqueness=u)
+        np.testing.assert_array_equal(fused[0], ref[0])
+        np.testing.assert_array_equal(fused[1], ref[1])
+    assert np.isnan(winner_take_all_both(cost, 0.05)[0]).any()     # the test is not vacuous
+    from stereo_depth.matching_cost import census_planes as planes
+    from stereo_depth.optimization import _census_box_wta
+    ref = winner_take_all_both(cost)
+    for chunks in (2, 5):      # rows split into independent chunks (one per numba thread)
+        out = _census_box_wta(planes(left, (5, 5)), planes(right, (5, 5)), 20, 2, 2,
+                              np.uint8(24), chunks, 0.0)
+        np.testing.assert_array_equal(out[0], ref[0])
+        np.testing.assert_array_equal(out[1], ref[1])

@@ -101,12 +101,18 @@ def rotation_angle(R: np.ndarray) -> float:
     return float(np.linalg.norm(rotation_log(R)))
 
 
+_EYE3 = np.eye(3)
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def is_rotation_matrix(R: np.ndarray, tol: float = 1e-6) -> bool:
     """Tell if ``R`` is a finite 3x3 matrix with ``R^T R = I`` and ``det R = +1`` within tol."""
     R = np.asarray(R, dtype=float)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         return False
-    return bool(np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol)
+    # np.allclose(R.T @ R, I, atol=tol) for finite values, without its per-call overhead
+    return bool(np.all(np.abs(R.T @ R - _EYE3) <= tol + 1e-5 * _EYE3)
+                and abs(np.linalg.det(R) - 1.0) < tol)
 
 
 def nearest_rotation(M: np.ndarray) -> np.ndarray:
@@ -241,7 +247,7 @@ def check_transform(T: np.ndarray, name: str = 'pose', tol: float = 1e-6) -> np.
         raise ValueError(f'{name}: expected a 4x4 transform, got shape {T.shape}')
     if not np.all(np.isfinite(T)):
         raise ValueError(f'{name}: contains NaN or infinite values')
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+    if not np.all(np.abs(T[3] - _LAST_ROW) <= 1e-8 + 1e-5 * _LAST_ROW):   # np.allclose
         raise ValueError(f'{name}: last row is {T[3].tolist()}, not [0, 0, 0, 1]')
     if not is_rotation_matrix(T[:3, :3], tol):
         raise ValueError(f'{name}: rotation block is not orthonormal with det +1 (tol {tol})')

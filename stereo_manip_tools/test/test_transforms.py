@@ -98,3 +98,17 @@ def test_check_transform_names_the_problem():
         check_transform(bad)
     with pytest.raises(ValueError, match='4x4'):
         check_transform(np.eye(3))
+
+
+def test_is_rotation_matrix_equals_the_allclose_test():
+    """The rotation test decides as np.allclose(R^T R, I, atol=tol) and |det R - 1| < tol."""
+    rng = np.random.default_rng(4)
+    decided = []
+    for k in range(3000):
+        R = rotation_about_axis(rng.normal(size=3), rng.uniform(0, np.pi))
+        R = R + rng.normal(0.0, 10 ** rng.uniform(-9, -5), (3, 3))
+        ref = bool(np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+                   and abs(np.linalg.det(R) - 1.0) < 1e-6)
+        assert is_rotation_matrix(R) == ref
+        decided.append(ref)
+    assert 0.1 < np.mean(decided) < 0.9      # both outcomes are exercised
