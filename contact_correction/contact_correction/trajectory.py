@@ -27,9 +27,10 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .contact_relation import (
-    ContactPair, detect_contact_relation, evaluate_contacts, penetration_depth, relative_pose,
-    VERTEX)
+    ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts, penetration_depth,
+    relative_pose, VERTEX)
 from .correction import correct_pose, CorrectionResult
+from .optimal_correction import constraint_directions, constraint_matrix
 from .polyhedron import Polyhedron
 from .recognition import (
     FrameCandidates, Hypothesis, recognise_track, RecognitionOptions, RelationRecognizer,
@@ -40,6 +41,13 @@ __all__ = ['correct_trajectory', 'trajectory_components', 'ContactCorrector',
 
 #: alternative relations tried when the chosen one is refused
 MAX_FALLBACKS = 3
+
+#: [m] largest accepted change along a direction the enforced relation leaves free
+FREE_TOLERANCE = 1e-7
+
+#: [m] probe step into a face-face contact at the corrected pose: a real contact penetrates
+#: (depth about the step), one whose faces meet only along a boundary does not
+CONTACT_PROBE = 1e-4
 
 
 def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
@@ -150,13 +158,103 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
         r.status += f' (guard: {why})'
         return r
 
+    def valid(r: CorrectionResult, h: Hypothesis, depth: int = 0) -> CorrectionResult:
+        """
+        Check a correction with ``h`` against the relation's own free directions.
+
+        A face-face group (or a single vertex-face / face-vertex one) is a contact only when
+        moving the corrected pose into it penetrates;
+        one whose faces meet only along a boundary line (a peg side face level with a hole's
+        wall while the peg stands on the top face: the rim is convex, nothing stops the peg
+        along the wall's normal) is dropped and the frame corrected with the rest of ``h``.
+        The change along the directions ``h`` leaves free (as recognised: a face-face group
+        constrains along its fixed face's normal) is restored when the pose keeps its contacts
+        and stays out of penetration there (the non-linear step may end at a configuration
+        where boundary pairs add constraints, e.g. a T-peg pulled to the slot's entrance).
+        """
+        if not r.corrected or not h.state or not frame.pool:
+            return r
+        T_o, T_c = relative_pose(T_moving, T_fixed), relative_pose(r.T_moving, T_fixed)
+        F = _recognised_free_translation(moving, fixed, T_o, h, frame)
+        leak = F @ (T_c[:3, 3] - T_o[:3, 3])
+        if len(F) and np.abs(leak).max() > FREE_TOLERANCE:
+            T_b = T_c.copy()
+            T_b[:3, 3] -= F.T @ leak
+            used = set(r.pairs)
+            kept = [p for p in h.pairs if p in used and VERTEX in (p.moving_type, p.fixed_type)]
+            d = evaluate_contacts(moving, fixed, T_b, kept).distances if kept else np.zeros(0)
+            if np.abs(d).max(initial=0.0) <= tol and (not check or penetration_depth(
+                    moving, fixed, T_fixed @ T_b, T_fixed, spacing) <= tol):
+                r.T_moving = T_fixed @ T_b
+                r.translation_change = T_b[:3, 3] - T_o[:3, 3]
+                # the relation at the returned pose: the pairs still in contact there (pushed
+                # pairs left behind by the restored free components are not)
+                A, g = constraint_matrix(moving, fixed, T_b, list(r.pairs))
+                on = np.abs(g.distances) <= tol
+                r.pairs = [p for p, k in zip(r.pairs, on) if k]
+                r.geometry = ContactGeometry(g.distances[on], g.points[on], g.normals[on])
+                r.directions = constraint_directions(A[on], max(moving.size, 1e-6))
+                r.max_residual = float(np.abs(g.distances[on]).max(initial=0.0))
+                r.status += (f' (free directions restored: {np.abs(leak).max() * 1e3:.3g} mm '
+                             'along a direction the relation leaves free)')
+                T_c = T_b
+            elif check and pen <= tol:
+                # the relation cannot be enforced without moving along a direction it leaves
+                # free (a degenerate configuration at the corrected pose): a silently wrong
+                # pose is worse than no correction
+                r2 = CorrectionResult(
+                    T_moving=np.array(T_moving, dtype=float), penetration_before=pen,
+                    penetration_after=pen,
+                    status=f'pose passed through ({r.status} moved it '
+                           f'{np.abs(leak).max() * 1e3:.3g} mm along a direction the '
+                           'relation leaves free)')
+                r2.relation_source = r.relation_source
+                return r2
+        if not check or depth > 1:
+            return r
+        spurious = set()
+        for key in h.state:
+            if key[0] not in ('ff', 'fv', 'vf'):
+                continue
+            T_in = T_c.copy()
+            if key[0] == 'fv':      # a fixed vertex on a moving face: the face advances
+                T_in[:3, 3] += CONTACT_PROBE * (T_c[:3, :3] @ moving.face_normals[key[1]])
+                depth = _vertex_depth(T_in, fixed.vertices[key[2]], moving, inverse=True)
+            elif key[0] == 'vf':
+                T_in[:3, 3] -= CONTACT_PROBE * fixed.face_normals[key[2]]
+                depth = _vertex_depth(T_in, moving.vertices[key[1]], fixed, inverse=False)
+            else:
+                T_in[:3, 3] -= CONTACT_PROBE * fixed.face_normals[key[2]]
+                depth = _face_contact_depth(moving, fixed, T_in, key[1], key[2], spacing)
+            if depth < 0.5 * CONTACT_PROBE:
+                spurious.add(key)
+        if not spurious:
+            return r
+        h2 = frame.hypothesis(h.state - frozenset(spurious))
+        note = (f' (dropped {len(spurious)} face-face group(s) meeting only along a boundary '
+                'at the corrected pose)')
+        if h2.pairs:
+            r2 = correct_pose(moving, fixed, T_moving, T_fixed, list(h2.pairs), **kwargs)
+            r2.relation_source = r.relation_source
+            if r2.corrected and not over(r2):
+                r2 = valid(r2, h2, depth + 1)
+                r2.status += note
+                return r2
+        elif pen <= tol:
+            r2 = CorrectionResult(T_moving=np.array(T_moving, dtype=float),
+                                  status='pose passed through' + note,
+                                  penetration_before=pen, penetration_after=pen)
+            r2.relation_source = r.relation_source
+            return r2
+        return r
+
     first: Optional[CorrectionResult] = None
     oversize: List[CorrectionResult] = []   # non-penetrating corrections beyond the guard
     if chosen.pairs:
         r = correct_pose(moving, fixed, T_moving, T_fixed, list(chosen.pairs), **kwargs)
         r.relation_source = 'recognised'
         if r.corrected and not over(r):
-            return r
+            return valid(r, chosen)
         if r.corrected:
             # far beyond the stated noise: a relation with fewer constraints, else only
             # non-penetration, else the observation (never silently)
@@ -171,7 +269,8 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                 r2 = correct_pose(moving, fixed, T_moving, T_fixed, list(h.pairs), **kwargs)
                 r2.relation_source = 'recognised, guard'
                 if r2.corrected and not over(r2):
-                    return guarded(r2, why + f'; a nested relation of rank {h.rank} used')
+                    return guarded(valid(r2, h),
+                                   why + f'; a nested relation of rank {h.rank} used')
             if check and pen > tol:
                 r2 = push_out(())
                 if r2 is not None:
@@ -202,6 +301,7 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
         # another relation of the frame that may constrain a free direction
         r = push_out(tuple(chosen.pairs))
         if r is not None:
+            r = valid(r, chosen, depth=2)    # its free directions only (pairs were added)
             r.status += (' (push-out: the chosen relation ' + (
                 f'could not be enforced: {first.status}' if first is not None else 'is free')
                 + ' and the observation penetrates)')
@@ -243,6 +343,85 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                                  penetration_before=pen)
     first.relation_source = 'recognised'
     return first
+
+
+def _face_boundary_samples(poly: Polyhedron, face: int, spacing: float) -> np.ndarray:
+    """Points [m] every ``spacing`` along the edges bounding ``face`` (model frame), cached."""
+    key = ('face boundary', int(face), float(spacing))
+    pts = poly._samples.get(key)
+    if pts is None:
+        out = []
+        for e in np.flatnonzero(np.any(poly.edge_faces == face, axis=1)):
+            k = max(1, int(np.ceil(poly.edge_lengths[e] / spacing)))
+            a, b = poly.vertices[poly.edge_vertices[e]]
+            out.append(a + (np.arange(k + 1) / k)[:, None] * (b - a))
+        pts = np.vstack(out) if out else np.zeros((0, 3))
+        poly._samples[key] = pts
+    return pts
+
+
+def _face_contact_depth(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
+                        moving_face: int, fixed_face: int, spacing: float) -> float:
+    """
+    Interpenetration depth [m] of two faces' boundaries at ``T_rel`` (moving in fixed frame).
+
+    :func:`~contact_correction.contact_relation.penetration_depth` restricted to the points
+    sampled along the edges of the two faces: after a probe step into a face-face contact,
+    the faces overlap over an area when some of these points are inside the other solid
+    (by about the step), along a boundary line only when none is.
+    """
+    R, t = T_rel[:3, :3], T_rel[:3, 3]
+    depth = 0.0
+    for pts, other in ((_face_boundary_samples(moving, moving_face, spacing) @ R.T + t, fixed),
+                       ((_face_boundary_samples(fixed, fixed_face, spacing) - t) @ R, moving)):
+        pts = pts[other.in_bbox(pts)]
+        if len(pts) == 0:
+            continue
+        inside = other.contains(pts) > 0.5 + 1e-6
+        if np.any(inside):
+            depth = max(depth, float(other.distance_to_surface(pts[inside]).max()))
+    return depth
+
+
+def _vertex_depth(T_rel: np.ndarray, x: np.ndarray, solid: Polyhedron, inverse: bool) -> float:
+    """
+    Depth [m] of one vertex inside ``solid`` (0 outside or on its surface).
+
+    :param T_rel: moving pose in the fixed frame (4, 4).
+    :param x: the vertex in its own model frame (3,): the moving object's (``inverse`` False,
+        tested in the fixed solid) or the fixed object's (``inverse`` True, tested in the
+        moving solid).
+    """
+    R, t = T_rel[:3, :3], T_rel[:3, 3]
+    p = ((x - t) @ R if inverse else R @ x + t)[None]
+    if solid.contains(p)[0] <= 0.5 + 1e-6:
+        return 0.0
+    return float(solid.distance_to_surface(p)[0])
+
+
+def _recognised_free_translation(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray,
+                                 h: Hypothesis, frame: FrameCandidates) -> np.ndarray:
+    """
+    Return the translations (rows, fixed frame) ``h`` leaves free, as the recognition sees it.
+
+    The separating-plane normals of ``h``'s pairs at ``T_rel`` (the observed pose, moving in
+    fixed frame), every pair of a face-face group taking its fixed face's normal (as the
+    recognition's rank does); their null space, orthonormal rows (k, 3).
+    """
+    g = evaluate_contacts(moving, fixed, T_rel, list(h.pairs))
+    N = g.normals.copy()
+    index = {p: i for i, p in enumerate(h.pairs)}
+    for key in h.state:
+        if key[0] == 'ff' and key in frame.groups:
+            for j in frame.groups[key]:
+                i = index.get(frame.pool[j])
+                if i is not None:
+                    N[i] = fixed.face_normals[key[2]]
+    if len(N) == 0:
+        return np.eye(3)
+    _, s, Vt = np.linalg.svd(N)
+    r = int(np.sum(s > 1e-6 * max(1.0, s[0])))
+    return Vt[r:]
 
 
 def guard_limits(options: RecognitionOptions) -> Optional[Tuple[float, float]]:
