@@ -27,7 +27,9 @@ Stages (each hypothesis keeps the figures of every stage, see :class:`Hypothesis
    the silhouette's depth-edge support -- ``VisibilityScore.combined``), at a tolerance
    matched to the rough pose accuracy.
 3. **Refinement** -- the ``max_refined`` best go through point-to-plane ICP with a Tukey
-   M-estimator annealed from the PPF step to the stereo noise, using only the model samples
+   M-estimator annealed from the PPF step to the stereo noise (the tracker's compiled
+   :func:`~object_localizer.point_to_plane.icp_point_to_plane`; scene normals estimated once
+   per cloud, :meth:`AcquisitionScene.icp_crop`), using only the model samples
    the camera sees (not hidden behind observed surfaces); the best ``max_slide`` are then
    searched along the model's principal axes by the visibility score (ICP cannot slide a long
    prism whose ends are far off) and refined again. Final verification at the stereo depth
@@ -44,9 +46,14 @@ Symmetric objects give several hypotheses equivalent under their symmetries with
 scores; any one is right. Two identical objects in view (e.g. ``link_base`` and ``link_arm``,
 the same brick) cannot be told apart by geometry: either may be returned.
 
+Pass the camera with its stereo ``baseline`` (``camera={'fx': .., 'baseline': ..}``): the
+visibility score then knows which model pixels stereo can measure (see
+:mod:`object_localizer.verification`); without it (virtual camera) it does not.
+
 Limitations (measured in ``bench/localizer_acquisition.py``): thin or mostly occluded objects
-in stereo clouds (silhouettes fattened by block matching, holes) are the failures; wall time
-is above 0.5 s per object on this 2-core machine.
+in stereo clouds (silhouettes fattened by block matching, holes, parts nearer than the
+stereo's minimum depth) are the failures; time is above 0.5 s per object on this 2-core
+machine.
 """
 
 from __future__ import annotations

@@ -14,13 +14,19 @@ Every model pixel is one of
   matching fattens and thins silhouettes by about half its window;
 * **occluded**: something observed in front of the model (observed < model - threshold): the
   model may be hidden there, neither evidence for nor against it;
-* **unknown**: no observed depth at that pixel.
+* **unknown**: no observed depth at that pixel, or (stereo camera: ``PinholeCamera.baseline``
+  given) a model surface stereo cannot measure there -- hidden from the right camera by the
+  model itself or by an observed surface, or too slanted for window matching
+  (:data:`STEREO_MAX_DISPARITY_GRADIENT`): block matching gives such pixels the disparity of
+  the background, which would otherwise read as a free-space violation.
 
-The score is ``(inliers - violation_weight * violations) / model_pixels`` clipped to [0, 1]: a
-pose explaining all of the visible surface with nothing seen through it scores 1; occluded and
-unknown pixels lower it (a hypothesis mostly hidden has little support), violations lower it
-more. This is the visibility reasoning of hypothesis verification in the PPF literature (e.g.
-Vidal et al. 2018, Hinterstoisser et al. 2016) and of depth-based tracking quality measures.
+The score is ``(inliers - violation_weight * violations) / max(inliers + violations,
+min_support * model_pixels)`` clipped to [0, 1]: a pose explaining all of the visible surface
+with nothing seen through it scores 1; violations lower it; occluded and unknown pixels are no
+evidence either way, but with the default ``min_support`` 1 they still dilute the score (a
+hypothesis mostly hidden has little support). This is the visibility reasoning of hypothesis
+verification in the PPF literature (e.g. Vidal et al. 2018, Hinterstoisser et al. 2016) and of
+depth-based tracking quality measures.
 
 Frames and units: poses 4x4 model -> camera optical frame (z forward, x right, y down);
 metres; pixels with integer centres. Images are coarsened by an integer ``stride`` (a
