@@ -73,7 +73,7 @@ TWIN_OFFSET = {
 def stereo_frames(cache: Path, frames_per_scene: int):
     """(scene, seed, frame, points (H, W, 3), camera dict, poses) for every benchmark frame."""
     from stereo_depth.pipeline import compute_disparity, disparity_to_points
-    from stereo_depth.synthetic import make_scene, render
+    from stereo_depth.synthetic import make_scene, render, StereoCamera
     cache.mkdir(parents=True, exist_ok=True)
     for scene_name in SCENES:
         n_frames = make_scene(scene_name).n_frames
@@ -83,15 +83,19 @@ def stereo_frames(cache: Path, frames_per_scene: int):
             path = cache / f'{scene_name}_s{seed}_f{frame}.npz'
             if path.exists():
                 data = np.load(path, allow_pickle=True)
-                yield (scene_name, seed, frame, data['points'], data['camera'].item(),
-                       data['poses'].item())
+                camera = data['camera'].item()
+                # clouds cached before the baseline was stored: render()'s default camera
+                camera.setdefault('baseline', StereoCamera.create().baseline)
+                yield scene_name, seed, frame, data['points'], camera, data['poses'].item()
                 continue
             left, right, truth = render(scene_name, frame, seed=seed)
             cam = truth['camera']
             disp = compute_disparity(left, right, 'block_matching', 160)
             pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'],
                                       cam['baseline'])
-            camera = {k2: cam[k2] for k2 in ('fx', 'fy', 'cx', 'cy', 'width', 'height')}
+            # the baseline lets the visibility score know what stereo can measure
+            camera = {k2: cam[k2] for k2 in ('fx', 'fy', 'cx', 'cy', 'width', 'height',
+                                             'baseline')}
             poses = {n: np.asarray(T) for n, T in truth['poses'].items() if n != 'table'}
             np.savez_compressed(path, points=pts.astype(np.float32), camera=camera, poses=poses)
             yield scene_name, seed, frame, pts, camera, poses

@@ -27,7 +27,9 @@ Stages (each hypothesis keeps the figures of every stage, see :class:`Hypothesis
    the silhouette's depth-edge support -- ``VisibilityScore.combined``), at a tolerance
    matched to the rough pose accuracy.
 3. **Refinement** -- the ``max_refined`` best go through point-to-plane ICP with a Tukey
-   M-estimator annealed from the PPF step to the stereo noise, using only the model samples
+   M-estimator annealed from the PPF step to the stereo noise (the tracker's compiled
+   :func:`~object_localizer.point_to_plane.icp_point_to_plane`; scene normals estimated once
+   per cloud, :meth:`AcquisitionScene.icp_crop`), using only the model samples
    the camera sees (not hidden behind observed surfaces); the best ``max_slide`` are then
    searched along the model's principal axes by the visibility score (ICP cannot slide a long
    prism whose ends are far off) and refined again. Final verification at the stereo depth
@@ -44,9 +46,14 @@ Symmetric objects give several hypotheses equivalent under their symmetries with
 scores; any one is right. Two identical objects in view (e.g. ``link_base`` and ``link_arm``,
 the same brick) cannot be told apart by geometry: either may be returned.
 
+Pass the camera with its stereo ``baseline`` (``camera={'fx': .., 'baseline': ..}``): the
+visibility score then knows which model pixels stereo can measure (see
+:mod:`object_localizer.verification`); without it (virtual camera) it does not.
+
 Limitations (measured in ``bench/localizer_acquisition.py``): thin or mostly occluded objects
-in stereo clouds (silhouettes fattened by block matching, holes) are the failures; wall time
-is above 0.5 s per object on this 2-core machine.
+in stereo clouds (silhouettes fattened by block matching, holes, parts nearer than the
+stereo's minimum depth) are the failures; time is above 0.5 s per object on this 2-core
+machine.
 """
 
 from __future__ import annotations
@@ -59,6 +66,7 @@ import numpy as np
 from object_localizer.localization import (fpfh_features, match_features_ransac,
                                            ModelTemplate, prepare_model, prepare_scene,
                                            remove_dominant_plane)
+from object_localizer.point_to_plane import icp_point_to_plane
 from object_localizer.ppf import build_ppf_model, cluster_poses, ppf_vote, PPFModel
 from object_localizer.tracking import (check_pose, PoseQuality, prepare_tracking_model,
                                        SceneCloud, track_icp, TrackerSettings, TrackingModel)
@@ -160,6 +168,7 @@ class AcquisitionScene:
     _clouds: Dict[Any, o3d.geometry.PointCloud] = field(default_factory=dict, repr=False)
     _observed: Optional[ObservedDepth] = field(default=None, repr=False)
     _rays: Optional[SceneCloud] = field(default=None, repr=False)
+    _icp: Dict[float, list] = field(default_factory=dict, repr=False)
 
     def cloud(self, voxel: float, drop_plane: bool = False,
               min_plane_extent: float = 0.0, seed: int = 0) -> o3d.geometry.PointCloud:
@@ -202,6 +211,33 @@ class AcquisitionScene:
         idx = np.flatnonzero(np.sum((P - c) ** 2, axis=1) <= radius * radius)
         return cloud.select_by_index(idx)
 
+    def icp_crop(self, voxel: float, centre: np.ndarray, radius: float
+                 ) -> Tuple[np.ndarray, np.ndarray, Any]:
+        """
+        Return the scene points within ``radius`` [m] of ``centre`` with normals, for ICP.
+
+        The scene down-sampled at ``voxel`` [m] (built once); normals (towards the sensor) from
+        the principal axes of each point's neighbours within ``3 * voxel`` (at most 30, in
+        the whole down-sampled scene) are estimated the first time a crop holds the point and
+        kept: the crops of all hypotheses and objects of a cloud overlap, so every point's
+        normal is computed once per cloud.
+
+        :return: points (K, 3), unit normals (K, 3), and a KD-tree of the points.
+        """
+        from scipy.spatial import cKDTree
+        key = round(voxel, 6)
+        if key not in self._icp:
+            P = np.asarray(self.downsampled(voxel).points)
+            self._icp[key] = [P, cKDTree(P), np.full(P.shape, np.nan)]
+        P, tree, normals = self._icp[key]
+        idx = np.asarray(tree.query_ball_point(np.asarray(centre, dtype=float), radius),
+                         dtype=np.int64)
+        todo = idx[np.isnan(normals[idx, 0])]
+        if len(todo):
+            normals[todo] = _pca_normals(P, tree, todo, 3.0 * voxel, 30)
+        Q = P[idx]
+        return Q, normals[idx], (cKDTree(Q) if len(Q) else None)
+
     def rays(self) -> SceneCloud:
         """Return the scene as the tracker's :class:`~object_localizer.tracking.SceneCloud`."""
         if self._rays is None:
@@ -213,6 +249,31 @@ class AcquisitionScene:
         if self._observed is None:
             self._observed = observe_depth(self.points, self.camera)
         return self._observed
+
+
+def _pca_normals(P: np.ndarray, tree: Any, idx: np.ndarray, radius: float,
+                 max_nn: int) -> np.ndarray:
+    """
+    Return unit normals (K, 3) of points ``P[idx]``, towards the sensor at the origin.
+
+    The eigenvector of the smallest eigenvalue of the covariance of each point's nearest
+    ``max_nn`` neighbours within ``radius`` [m] (Open3D's hybrid search); (0, 0, -1) ... turned
+    towards the sensor when fewer than 3 neighbours.
+    """
+    d, nn = tree.query(P[idx], k=max_nn, distance_upper_bound=radius)
+    ok = np.isfinite(d)
+    nn = np.where(ok, nn, 0)
+    Q = P[nn]                                                   # (K, k, 3)
+    w = ok[..., None].astype(float)
+    cnt = np.maximum(w.sum(axis=1), 1.0)                        # (K, 1)
+    mean = (Q * w).sum(axis=1) / cnt
+    D = (Q - mean[:, None, :]) * w
+    C = np.einsum('kni,knj->kij', D, D) / cnt[..., None]
+    n = np.linalg.eigh(C)[1][:, :, 0]
+    n[ok.sum(axis=1) < 3] = (0.0, 0.0, -1.0)
+    flip = np.einsum('ij,ij->i', n, P[idx]) > 0
+    n[flip] *= -1.0
+    return n
 
 
 def prepare_acquisition_model(mesh: PolygonMesh, *, ppf_relative_step: float = 0.05,
@@ -330,16 +391,12 @@ def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
         score of the truth stayed higher than the drifted pose's.
     :return: pose, inlier fraction (model samples within 3 mm), inlier RMS [m].
     """
-    reg = o3d.pipelines.registration
     step = model.ppf.distance_step
     t = model.template
-    local = scene.crop(scene.downsampled(t.voxel_size), model.centroid, pose,
-                       0.5 * model.diameter + step)
-    if len(local.points) < 10:
+    Q, QN, tree = scene.icp_crop(t.voxel_size, pose[:3, :3] @ model.centroid + pose[:3, 3],
+                                 0.5 * model.diameter + step)
+    if len(Q) < 10:
         return pose, 0.0, float('nan')
-    local.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3.0 * t.voxel_size,
-                                                                max_nn=30))
-    local.orient_normals_towards_camera_location(np.zeros(3))
     rng = np.random.default_rng(0)
     src = None
     tried: List[Tuple[float, np.ndarray]] = []
@@ -360,17 +417,17 @@ def _refine(model: AcquisitionModel, scene: AcquisitionScene, pose: np.ndarray,
             return pose, 0.0, float('nan')
         if len(keep) > max_points:
             keep = np.sort(rng.choice(keep, max_points, replace=False))
-        src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(t.points[keep]))
-        src.normals = o3d.utility.Vector3dVector(t.normals[keep])
-        res = reg.registration_icp(src, local, reach, pose,
-                                   reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=k)),
-                                   reg.ICPConvergenceCriteria(1e-7, 1e-7, iters))
-        pose = np.asarray(res.transformation).copy()
+        src = t.points[keep]
+        # compiled point-to-plane ICP with the Tukey loss (the tracker's), scene crop as target
+        delta = icp_point_to_plane(src @ R.T + tr, Q, QN, reach, k, max_iterations=iters,
+                                   tolerance=1e-7, fine_cell=t.voxel_size)[0]
+        pose = delta @ pose
         guard(pose)
     if tried and max(v for v, _ in tried[:-1]) > tried[-1][0] + 0.02:
         pose = max(tried[:-1], key=lambda vt: vt[0])[1]
-    ev = reg.evaluate_registration(src, local, 0.003, pose)
-    return pose, float(ev.fitness), float(ev.inlier_rmse)
+    d = tree.query(src @ pose[:3, :3].T + pose[:3, 3], distance_upper_bound=0.003)[0]
+    ok = np.isfinite(d)
+    return pose, float(ok.mean()), float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else 0.0
 
 
 def _slide_search(model: AcquisitionModel, pose: np.ndarray, observed: ObservedDepth,

@@ -327,6 +327,45 @@ def ppf_vote(model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarra
     return T, votes
 
 
+@numba.njit(cache=True)
+def _cluster(R, C, V, t_thr, cos_thr):  # pragma: no cover - numba
+    """Greedy clustering of poses sorted by votes: cluster id per pose and cluster sums."""
+    n = R.shape[0]
+    seed_R = np.empty((n, 3, 3))
+    seed_c = np.empty((n, 3))
+    scores = np.zeros(n)
+    sum_R = np.zeros((n, 3, 3))
+    sum_c = np.zeros((n, 3))
+    m = 0
+    t2 = t_thr * t_thr
+    for k in range(n):
+        hit = -1
+        for j in range(m):
+            d0 = seed_c[j, 0] - C[k, 0]
+            d1 = seed_c[j, 1] - C[k, 1]
+            d2 = seed_c[j, 2] - C[k, 2]
+            if d0 * d0 + d1 * d1 + d2 * d2 > t2:
+                continue
+            tr = 0.0
+            for a in range(3):
+                for b in range(3):
+                    tr += seed_R[j, a, b] * R[k, a, b]
+            if (tr - 1.0) / 2.0 >= cos_thr:
+                hit = j
+                break
+        if hit < 0:
+            hit = m
+            seed_R[m] = R[k]
+            seed_c[m] = C[k]
+            m += 1
+        scores[hit] += V[k]
+        for a in range(3):
+            sum_c[hit, a] += V[k] * C[k, a]
+            for b in range(3):
+                sum_R[hit, a, b] += V[k] * R[k, a, b]
+    return scores[:m], sum_R[:m], sum_c[:m]
+
+
 def cluster_poses(poses: np.ndarray, votes: np.ndarray, centre: np.ndarray,
                   translation_threshold: float, rotation_threshold: float,
                   max_clusters: int = 50) -> Tuple[np.ndarray, np.ndarray]:
@@ -344,39 +383,16 @@ def cluster_poses(poses: np.ndarray, votes: np.ndarray, centre: np.ndarray,
         return np.zeros((0, 4, 4)), np.zeros(0)
     order = np.argsort(-votes, kind='stable')
     P = poses[order]
-    V = votes[order]
-    centres = np.einsum('nij,j->ni', P[:, :3, :3], centre) + P[:, :3, 3]
-    cos_thr = np.cos(rotation_threshold)
-    seeds: list = []
-    scores: list = []
-    sum_R: list = []
-    sum_c: list = []
-    seed_R = np.zeros((0, 3, 3))
-    seed_c = np.zeros((0, 3))
-    for k in range(len(P)):
-        if len(seeds):
-            near = np.linalg.norm(seed_c - centres[k], axis=1) <= translation_threshold
-            if near.any():
-                tr = np.einsum('nij,ij->n', seed_R[near], P[k, :3, :3])
-                cos = (tr - 1.0) / 2.0
-                hit = np.flatnonzero(near)[cos >= cos_thr]
-                if len(hit):
-                    scores[hit[0]] += V[k]
-                    sum_R[hit[0]] += V[k] * P[k, :3, :3]
-                    sum_c[hit[0]] += V[k] * centres[k]
-                    continue
-        seeds.append(k)
-        scores.append(V[k])
-        sum_R.append(V[k] * P[k, :3, :3])
-        sum_c.append(V[k] * centres[k])
-        seed_R = np.concatenate([seed_R, P[k:k + 1, :3, :3]])
-        seed_c = np.concatenate([seed_c, centres[k:k + 1]])
-    sc = np.array(scores)
+    V = np.ascontiguousarray(votes[order], dtype=np.float64)
+    R = np.ascontiguousarray(P[:, :3, :3])
+    centres = np.ascontiguousarray(np.einsum('nij,j->ni', R, centre) + P[:, :3, 3])
+    sc, sum_R, sum_c = _cluster(R, centres, V, float(translation_threshold),
+                                float(np.cos(rotation_threshold)))
     best = np.argsort(-sc, kind='stable')[:max_clusters]
     out = np.tile(np.eye(4), (len(best), 1, 1))
     for j, b in enumerate(best):
         U, _, Vt = np.linalg.svd(sum_R[b])
-        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        out[j, :3, :3] = R
-        out[j, :3, 3] = sum_c[b] / sc[b] - R @ centre
+        Rb = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        out[j, :3, :3] = Rb
+        out[j, :3, 3] = sum_c[b] / sc[b] - Rb @ centre
     return out, sc[best]

@@ -220,6 +220,52 @@ def test_partly_hidden_object_outranks_a_fully_visible_wrong_pose(
     assert e_t < 0.002 and e_r < np.radians(2.0), (e_t, np.degrees(e_r))
 
 
+def test_stereo_aware_score_ranks_the_peg_in_its_hole_above_the_peg_lying_on_the_block(
+        meshes):
+    """
+    The visibility score knows what stereo can measure (camera baseline given).
+
+    Stereo cloud of bench trial 5 of localizer_acquisition (peg_in_hole, seed 2, frame 46):
+    the peg stands in its hole, and its side face, seen at 69 deg incidence by the left camera
+    and 80 deg by the right one, gets the block's disparity from block matching. Counted as
+    free-space violations (19 % of the peg's pixels) they made the true pose score 0.56
+    against 0.70 for the peg lying on the block's top face (a wrong pose 141 mm away, chosen
+    on main). With the baseline the score takes those pixels as unmeasurable (unknown), so
+    the truth ranks first; a real violation (a pose shifted off the peg) still counts.
+    """
+    from stereo_depth.pipeline import compute_disparity, disparity_to_points
+    from stereo_depth.synthetic import render
+    left, right, truth = render('peg_in_hole', 46, seed=2)
+    cam = truth['camera']
+    disp = compute_disparity(left, right, 'block_matching', 160)
+    pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'], cam['baseline'])
+    surface = sample_model_surface(meshes['peg'])
+    T = np.asarray(truth['poses']['peg'])
+    # the peg lying on the block's top face (block frame), as main's acquisition returned it
+    R = np.array([[-0.0328, -0.9991, -0.0251], [-0.0004, 0.0251, -0.9997],
+                  [0.9995, -0.0327, -0.0012]])
+    U, _, Vt = np.linalg.svd(R)
+    lying = np.asarray(truth['poses']['hole_block']) @ make_transform(U @ Vt,
+                                                                      [-0.0608, 0.04, -0.0198])
+    assert np.linalg.norm(lying[:3, 3] - T[:3, 3]) > 0.1
+    stereo = observe_depth(pts, cam)
+    assert stereo.camera.baseline == pytest.approx(cam['baseline'])
+    right_pose = score_pose_visibility(surface, T, stereo)
+    wrong = score_pose_visibility(surface, lying, stereo)
+    assert right_pose.violation_fraction < 0.05, right_pose
+    assert right_pose.combined > wrong.combined + 0.03, (right_pose, wrong)
+    # without the baseline (no stereo model) the side face counts against the truth
+    mono = observe_depth(pts, {k: cam[k] for k in ('fx', 'fy', 'cx', 'cy', 'width', 'height')})
+    assert score_pose_visibility(surface, T, mono).violation_fraction > 0.1
+    assert score_pose_visibility(surface, T, mono).combined < \
+        score_pose_visibility(surface, lying, mono).combined
+    # the peg shifted 1 cm sideways: the table seen through it is measurable, a violation
+    off = T.copy()
+    off[:3, 3] += [0.0, 0.01, 0.0]
+    shifted = score_pose_visibility(surface, off, stereo)
+    assert shifted.violation_fraction > 0.1 and shifted.combined < 0.5 * right_pose.combined
+
+
 def test_bad_input_is_refused(meshes):
     model = prepare_acquisition_model(meshes['cube'])
     with pytest.raises(ValueError, match='method'):
