@@ -41,7 +41,7 @@ PEER = Path(__file__).resolve().parents[1] / 'object_localizer' / 'test' / 'clou
 
 
 def startup_line(proc, timeout=5.0):
-    """The localizer's start-up time line (its log line), or None."""
+    """Return the localizer's start-up time line (its log line), or None."""
     if not proc.wait_for_output('start-up [s', timeout):
         return None
     return [ln.split('start-up ', 1)[1] for ln in proc.output().splitlines()
