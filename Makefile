@@ -6,7 +6,7 @@ bootstrap:
 
 test: bootstrap
 	@scripts/noble_venv.sh
-	@scripts/run_tests.sh
+	@scripts/run_tests.sh --durations=30
 
 demo: bootstrap
 	@scripts/run_demo.sh
