@@ -531,17 +531,24 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
                    'on their rays: too few to verify'
         return q
     # Virtual image over the model's silhouette, pixel ~ 1.5 x the scene's angular spacing.
+    from object_localizer.verification import interior_hole_rate, MAX_HOLE_RATE
     a = P[:, :2] / P[:, 2:3]
     lo, hi = a.min(axis=0), a.max(axis=0)
     inside = crop_window(cone_points, lo, hi)     # the scene on the rays of the silhouette
     area = float(np.prod(np.maximum(hi - lo, 1e-6)))
     pixel = 1.5 * np.sqrt(area / max(len(inside), 1))
     pixel = max(pixel, 1e-4)
-    shape = (int((hi[1] - lo[1]) / pixel) + 1, int((hi[0] - lo[0]) / pixel) + 1)
-    if shape[0] * shape[1] > 4_000_000:
-        q.reason = 'scene too sparse on the object to verify'
-        return q
-    observed = _range_image(inside, pixel, lo, shape)
+    for attempt in range(4):
+        shape = (int((hi[1] - lo[1]) / pixel) + 1, int((hi[0] - lo[0]) / pixel) + 1)
+        if shape[0] * shape[1] > 4_000_000:
+            q.reason = 'scene too sparse on the object to verify'
+            return q
+        observed = _range_image(inside, pixel, lo, shape)
+        # points off the pixel grid (an unorganised cloud) leave chance holes that would read
+        # as unobserved surface: coarsen until there are as few as in a camera's cloud
+        if attempt == 3 or interior_hole_rate(observed.reshape(shape)) <= MAX_HOLE_RATE:
+            break
+        pixel *= 1.25
     own = _range_image(P, pixel, lo, shape)
     idx, ok = _pixels(P, pixel, lo, shape)
     idx = np.where(ok, idx, 0)
@@ -692,7 +699,9 @@ def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int) -> l
 
 
 def make_acquirer(method: str, max_candidates: int = 6,
-                  time_budget_s: float = 0.0) -> Acquirer:
+                  time_budget_s: float = 0.0,
+                  camera: Optional[Callable[[], Any]] = None,
+                  stereo_baseline: Optional[Callable[[], float]] = None) -> Acquirer:
     """
     Make the global acquisition of ``object_localizer.acquisition`` an Acquirer.
 
@@ -701,6 +710,13 @@ def make_acquirer(method: str, max_candidates: int = 6,
     :data:`Acquirer`: its best ``max_candidates`` hypotheses, refined or not, best first (the
     tracker refines and checks each in turn); ``'rough_fine'``: :func:`acquire_rough_fine`.
     The acquisition model is built on first use and kept on the tracking model.
+
+    :param camera: called at every acquisition: the intrinsics of the camera the clouds come
+        from (``verification.as_camera`` forms, e.g. from the CameraInfo of the cloud's
+        frame), or None (a virtual camera over the points).
+    :param stereo_baseline: called at every acquisition: the stereo baseline [m] (second camera
+        at +x of the cloud's optical frame) the visibility score reasons with; 0 or None: not
+        stereo.
     """
     if method == 'rough_fine':
         return acquire_rough_fine
@@ -715,8 +731,10 @@ def make_acquirer(method: str, max_candidates: int = 6,
             model.acquisition = acquisition.prepare_acquisition_model(model.mesh,
                                                                       check_model=model)
         P = np.asarray(points, dtype=float)
-        hyps = acquisition.acquire_object(model.acquisition, P[np.all(np.isfinite(P), axis=1)],
-                                          method=method, seed=seed,
+        scene = acquisition.prepare_acquisition_scene(
+            P[np.all(np.isfinite(P), axis=1)], camera=camera() if camera else None,
+            stereo_baseline=float(stereo_baseline()) if stereo_baseline else 0.0)
+        hyps = acquisition.acquire_object(model.acquisition, scene, method=method, seed=seed,
                                           time_budget_s=time_budget_s)
         return [h.pose for h in hyps[:max_candidates]]
     return acquire
