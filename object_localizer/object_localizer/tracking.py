@@ -531,24 +531,17 @@ def check_pose(model: TrackingModel, pose: np.ndarray, cone_points: np.ndarray,
                    'on their rays: too few to verify'
         return q
     # Virtual image over the model's silhouette, pixel ~ 1.5 x the scene's angular spacing.
-    from object_localizer.verification import interior_hole_rate, MAX_HOLE_RATE
     a = P[:, :2] / P[:, 2:3]
     lo, hi = a.min(axis=0), a.max(axis=0)
     inside = crop_window(cone_points, lo, hi)     # the scene on the rays of the silhouette
     area = float(np.prod(np.maximum(hi - lo, 1e-6)))
     pixel = 1.5 * np.sqrt(area / max(len(inside), 1))
     pixel = max(pixel, 1e-4)
-    for attempt in range(4):
-        shape = (int((hi[1] - lo[1]) / pixel) + 1, int((hi[0] - lo[0]) / pixel) + 1)
-        if shape[0] * shape[1] > 4_000_000:
-            q.reason = 'scene too sparse on the object to verify'
-            return q
-        observed = _range_image(inside, pixel, lo, shape)
-        # points off the pixel grid (an unorganised cloud) leave chance holes that would read
-        # as unobserved surface: coarsen until there are as few as in a camera's cloud
-        if attempt == 3 or interior_hole_rate(observed.reshape(shape)) <= MAX_HOLE_RATE:
-            break
-        pixel *= 1.25
+    shape = (int((hi[1] - lo[1]) / pixel) + 1, int((hi[0] - lo[0]) / pixel) + 1)
+    if shape[0] * shape[1] > 4_000_000:
+        q.reason = 'scene too sparse on the object to verify'
+        return q
+    observed = _range_image(inside, pixel, lo, shape)
     own = _range_image(P, pixel, lo, shape)
     idx, ok = _pixels(P, pixel, lo, shape)
     idx = np.where(ok, idx, 0)
