@@ -265,8 +265,10 @@ class ObjectLocalizerNode(Node):
         camera = PinholeCamera(float(P[0, 0]), float(P[1, 1]), float(P[0, 2]), float(P[1, 2]),
                                int(msg.width), int(msg.height))
         if camera != self._camera:
-            self.get_logger().info(f'acquisition camera from left/camera_info '
-                                   f'({msg.header.frame_id}): {camera}')
+            self.get_logger().info(
+                f'acquisition camera from left/camera_info ({msg.header.frame_id}): {camera}; '
+                f'stereo baseline {self.get_parameter("stereo_baseline").value} m '
+                '(stereo_baseline)')
         self._camera = camera
         self._camera_frame = msg.header.frame_id
 
