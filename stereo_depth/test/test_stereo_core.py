@@ -548,6 +548,34 @@ def test_packed_cloud_is_the_old_cloud_byte_for_byte(organized, colour):
         cloud_message_data(depth, fx, fy, cx, cy, 1, False, np.zeros((h, w), np.uint8))
 
 
+@pytest.mark.parametrize('organized', [False, True])
+@pytest.mark.parametrize('decimation', [1, 2, 3])
+def test_packed_cloud_from_disparity_is_the_one_from_the_depth_image(organized, decimation):
+    # the node packs the cloud from the disparity (depth of the kept pixels only): the same
+    # bytes as disparity_to_depth followed by cloud_message_data, doffs and holes included
+    rng = np.random.default_rng(5)
+    h, w = 53, 71
+    fx, fy, cx, cy, baseline = 525.3, 523.9, 33.7, 25.1, 0.12
+    for doffs in (0.0, -3.5, 2.25):
+        disp = rng.uniform(0.0, 160.0, (h, w)).astype(np.float32)
+        disp[rng.random((h, w)) < 0.2] = np.nan
+        disp[0, :5] = np.float32(-doffs)              # d + doffs == 0: no depth
+        colours = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        for col in (None, colours):
+            want = cloud_message_data(disparity_to_depth(disp, fx, baseline, doffs), fx, fy,
+                                      cx, cy, decimation, organized, col)
+            got = cloud_message_data(None, fx, fy, cx, cy, decimation, organized, col,
+                                     disparity=disp, baseline=baseline, doffs=doffs)
+            assert got.buffer.tobytes() == want.buffer.tobytes()
+            assert got.buffer.shape == want.buffer.shape and got.fields == want.fields
+            assert got.is_dense == want.is_dense
+            assert want.buffer.shape[1] > 10
+    with pytest.raises(ValueError, match='either'):
+        cloud_message_data(disp, fx, fy, cx, cy, disparity=disp, baseline=baseline)
+    with pytest.raises(ValueError, match='baseline'):
+        cloud_message_data(None, fx, fy, cx, cy, disparity=disp, baseline=0.0)
+
+
 def test_evaluation_metrics_by_hand():
     truth = np.array([[10.0, 10.0, 10.0, np.inf], [10.0, 10.0, 10.0, 10.0]])
     est = np.array([[10.5, 11.5, 13.0, 1.0], [np.nan, 10.0, 4.0, 10.0]])
