@@ -18,8 +18,14 @@ CPU per frame of ``stereo_depth_node`` at 640x480 in the live configuration, spl
    (``pipeline.cloud_points`` + ``conversions.xyz_to_pointcloud2``) measured on the same frames
    as the peer of the packed cloud (``pipeline.cloud_message_data``).
 
+1b. The same lock-step run with the node under ``bench/stereo_node_profiled.py``: its own
+   ``main()`` with the per-frame functions wrapped, process and thread CPU per call of every
+   stage inside the node process (``node_process_profiled.stages``): where the node's CPU goes,
+   DDS, executor and the copies around the kernels included.
+
 3. Main's per-frame path against this branch's, alternated frame by frame in this process
-   (``paired_main_vs_branch``): the change measured under one and the same load.
+   (``paired_main_vs_branch``): the change measured under one and the same load. The peer is
+   the path of 7594e47 (its kernel and median copied here, OpenCV's ``filterSpeckles``).
 
 Goals: node process CPU per frame median <= 50 ms (half a core at 10 Hz: the localiser and
 the contact node need the rest of the two cores); cloud build + pack p95 <= 10 ms.
@@ -161,6 +167,17 @@ def _main_kernel():
     return _main_census_box_wta, _main_nan_median
 
 
+def opencv_speckles(disparity: np.ndarray, max_size: int, max_diff: float) -> np.ndarray:
+    """Main's speckle filter (the peer): OpenCV's ``filterSpeckles`` on the 1/16 px int16."""
+    import cv2
+    d = np.asarray(disparity, dtype=np.float32)
+    fixed = np.where(np.isnan(d), -1.0, np.round(d * 16.0)).astype(np.int16)
+    cv2.filterSpeckles(fixed, -1, int(max_size), int(round(max_diff * 16.0)))
+    out = d.copy()
+    out[fixed == -1] = np.nan
+    return out
+
+
 def stats(values: List[float]) -> Dict[str, float]:
     """Return median, p95, max and n of ``values``."""
     a = np.asarray(values, float)
@@ -221,8 +238,14 @@ def task_cpu_by_thread(pid: int) -> Dict[str, int]:
     return out
 
 
-def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3) -> Dict[str, Any]:
-    """CPU per frame of the node process in lock-step (part 1 of the module docstring)."""
+def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3,
+                 profile_out: str = '') -> Dict[str, Any]:
+    """
+    CPU per frame of the node process in lock-step (part 1 of the module docstring).
+
+    With ``profile_out`` the node runs under ``bench/stereo_node_profiled.py`` (part 1b): the
+    stage split is read from that file and returned as ``stages``.
+    """
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
@@ -242,8 +265,12 @@ def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3) -> Dict
     node.create_subscription(PointCloud2, 'points2',
                              lambda m: got.__setitem__(stamp_to_ns(m.header.stamp), m.width),
                              QoSProfile(depth=1))
-    proc = ExecutableProcess('stereo_depth', 'stereo_depth_node', ros_args=ros_args,
-                             env={'NUMBA_NUM_THREADS': '1'})
+    if profile_out:
+        proc = _ProfiledNode(ros_args, {'NUMBA_NUM_THREADS': '1',
+                                        'STEREO_PROFILE_OUT': profile_out})
+    else:
+        proc = ExecutableProcess('stereo_depth', 'stereo_depth_node', ros_args=ros_args,
+                                 env={'NUMBA_NUM_THREADS': '1'})
     try:
         if not proc.wait_for_output('warm-up', timeout=120.0):
             raise RuntimeError('stereo node did not start:\n' + proc.output()[-2000:])
@@ -288,6 +315,10 @@ def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3) -> Dict
         proc.stop()
         shutdown_node(node)
     n = len(frames)
+    stages = None
+    if profile_out:
+        import json
+        stages = json.loads(Path(profile_out).read_text())
     by_name: Dict[str, float] = {}
     for key, ns in threads_end.items():
         name = key.rsplit('/', 1)[0]
@@ -303,7 +334,44 @@ def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3) -> Dict
             'window_s': window,
             'cloud_latency_ms_lockstep': stats(latency_ms) if latency_ms else None,
             'points_per_cloud': stats(points) if points else None,
-            'node_log_tail': log[-1500:]}
+            'node_log_tail': log[-1500:], **({'stages': stages} if stages else {})}
+
+
+class _ProfiledNode:
+    """``bench/stereo_node_profiled.py`` as a process, with ExecutableProcess's interface."""
+
+    def __init__(self, ros_args: List[str], env: Dict[str, str]) -> None:
+        import subprocess
+        import sys
+        import tempfile
+        from stereo_manip_tools.processes import interrupt_then_kill
+        self._stop = interrupt_then_kill
+        self._log = tempfile.NamedTemporaryFile(prefix='stereo_profiled_', suffix='.log',
+                                                delete=False)
+        self.process = subprocess.Popen(
+            [sys.executable, str(Path(__file__).with_name('stereo_node_profiled.py')),
+             '--ros-args', *ros_args], stdout=self._log, stderr=subprocess.STDOUT,
+            env={**os.environ, 'PYTHONUNBUFFERED': '1', **env})
+
+    def output(self) -> str:
+        """Everything the process printed so far."""
+        self._log.flush()
+        return Path(self._log.name).read_text(errors='replace')
+
+    def wait_for_output(self, text: str, timeout: float) -> bool:
+        """Wait until ``text`` appears in the output or the process exits."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in self.output():
+                return True
+            if self.process.poll() is not None:
+                return text in self.output()
+            time.sleep(0.05)
+        return False
+
+    def stop(self) -> int:
+        """SIGINT, then SIGKILL (the profile is written at the interpreter's exit)."""
+        return self._stop(self.process, 10.0)
 
 
 def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
@@ -330,6 +398,7 @@ def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
         return out
 
     same_xyz = True
+    same_speckles = True
     for rep, (lm, rm) in enumerate([frames[0], frames[1]] + list(frames)):
         if rep == 2:
             times.clear()
@@ -343,8 +412,11 @@ def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
         dl, dr = timed('cost + aggregation + WTA (fused)', op._census_box_wta, cl, cr, nd,
                        win[0] // 2, win[1] // 2, nbits, 1, 0.0)
         d = timed('left-right check', rf.left_right_check, dl, dr, defaults['lr_max_diff'])
+        ds = timed('peer: speckle filter (OpenCV filterSpeckles, main)', opencv_speckles, d,
+                   defaults['speckle_size'], defaults['speckle_diff'])
         d = timed('speckle filter', rf.remove_speckles, d, defaults['speckle_size'],
                   defaults['speckle_diff'])
+        same_speckles &= bool(np.array_equal(d, ds, equal_nan=True))
         d = timed('median filter', rf.median_filter, d, defaults['median'])
         d = timed('fill', rf.fill_invalid, d, 'row')
         disp = timed('compute_disparity (all of the above but decoding)', pl.compute_disparity,
@@ -362,6 +434,7 @@ def stage_split(frames, infos, params: Dict[str, Any]) -> Dict[str, Any]:
     out = {k: stats(v) for k, v in times.items()}
     out['peer: cloud build + pack (main)'] = stats(peer)
     return {'cpu_ms': out, 'packed_bytes_identical_to_main': bool(same_xyz),
+            'speckle_filter_identical_to_opencv': bool(same_speckles),
             'numba_threads': int(numba.get_num_threads())}
 
 
@@ -375,9 +448,10 @@ def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
     on every frame gives both the same load, and the per-frame difference is the change.
     main's path (7594e47): 32-bit census codes (``census_transform``) into main's fused kernel
     (``_main_kernel``: uint8 Hamming rows, per-pixel WTA), main's median (OpenCV + the
-    valid-neighbour median), then the same depth and packed cloud. This branch's:
-    ``compute_disparity`` (census byte planes, the padded packed-minimum kernel, the 3x3
-    sorting-network median). Both include decoding, depth and the message; the clouds are
+    valid-neighbour median), OpenCV's ``filterSpeckles`` (``opencv_speckles``), then the same
+    depth and packed cloud. This branch's: ``compute_disparity`` (census byte planes, the
+    padded packed-minimum kernel, the 3x3 sorting-network median, the union-find speckle
+    filter). Both include decoding, depth and the message; the clouds are
     checked byte-equal on every frame.
     """
     import numba
@@ -409,7 +483,7 @@ def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
         cr = mc.census_transform(rc, cw).astype(np.uint32)
         dl, dr = main_kernel(cl, cr, nd, win[0] // 2, win[1] // 2, nbits, 1, 0.0)
         d = rf.left_right_check(dl, dr, p['lr_max_diff'])
-        d = rf.remove_speckles(d, p['speckle_size'], p['speckle_diff'])
+        d = opencv_speckles(d, p['speckle_size'], p['speckle_diff'])
         full = cv2.medianBlur(np.where(np.isfinite(d), d, np.float32(0.0)), p['median'])
         d = main_nan_median(d, p['median'] // 2, full, True)
         d = rf.fill_invalid(d, 'row')
@@ -462,6 +536,9 @@ def main() -> None:
     frames, infos = render_frames(args.frames)
     load_start = list(os.getloadavg())
     node = node_process(frames, infos, params)
+    import tempfile
+    with tempfile.TemporaryDirectory() as tmp:
+        profiled = node_process(frames, infos, params, profile_out=str(Path(tmp) / 'p.json'))
     split = stage_split(frames, infos, params)
     paired = paired_main_vs_branch(frames, infos, params)
     load_end = list(os.getloadavg())
@@ -470,6 +547,9 @@ def main() -> None:
     c = node['cpu_ms_per_frame']
     for k, v in paired['cpu_ms_per_frame'].items():
         print(f"paired, {k:30s} {v['median']:7.2f} {v['p95']:7.2f} {v['max']:7.2f} ms CPU")
+    for k, v in profiled.get('stages', {}).items():
+        print(f"in node, {k:44s} process {v['process_cpu_ms']['median']:7.2f} thread "
+              f"{v['thread_cpu_ms']['median']:7.2f} ms CPU (median per call, {v['calls']} calls)")
     print('node threads [ms CPU per frame]:', {k: round(v, 2) for k, v in
                                                node['cpu_ms_per_frame_by_thread'].items()})
     print(f"node process: {c['median']:.1f} / {c['p95']:.1f} / {c['max']:.1f} ms CPU per frame "
@@ -487,6 +567,8 @@ def main() -> None:
     ]
     write_report('stereo_node_cpu', goals, scene=SCENE, image_size=[640, 480],
                  node_process=node, in_process_stage_split=split,
+                 node_process_profiled={k: profiled.get(k) for k in (
+                     'stages', 'cpu_ms_per_frame', 'cpu_ms_per_frame_by_thread', 'clouds_lost')},
                  paired_main_vs_branch=paired,
                  load_average={'start': load_start, 'end': load_end}, note=args.note)
 

@@ -646,6 +646,18 @@ def _hamming_pixel(pl, y, x, crr, ndp, out):
     # out[d] = Hamming distance of left pixel (x, y) and right pixel x - d of the row held
     # reversed in crr (index w - 1 - (x - d)), summed over the byte planes; d < ndp.
     k0 = crr.shape[1] - ndp - 1 - x
+    if pl.shape[0] == 3:
+        # the 5x5 census (24 bits): all three planes in one pass, one store per candidate
+        a0 = pl[0, y, x]
+        a1 = pl[1, y, x]
+        a2 = pl[2, y, x]
+        s0 = crr[0, k0:k0 + ndp]
+        s1 = crr[1, k0:k0 + ndp]
+        s2 = crr[2, k0:k0 + ndp]
+        for d in range(ndp):
+            out[d] = np.uint8(_popcount8(np.uint8(a0 ^ s0[d])) + _popcount8(np.uint8(a1 ^ s1[d]))
+                              + _popcount8(np.uint8(a2 ^ s2[d])))
+        return
     a = pl[0, y, x]
     src = crr[0, k0:k0 + ndp]
     for d in range(ndp):
@@ -709,8 +721,17 @@ def _left_disparity(hs, pk, nd, uniqueness):
         if found and best * (1.0 + uniqueness) > second:
             return np.float32(np.nan)
     if 0 < bd < nd - 1:
-        cm = np.float32(hs[bd - 1])
-        cp = np.float32(hs[bd + 1])
+        return _parabola_vertex(bd, best, hs[bd - 1], hs[bd + 1], nd)
+    return np.float32(bd)
+
+
+@numba.njit(inline='always', fastmath=True, boundscheck=False)
+def _parabola_vertex(bd, best, cmi, cpi, nd):
+    # Subpixel disparity of the integer winner bd (cost best) from the costs cmi, cpi at
+    # bd - 1 and bd + 1 (as _wta_pixel): the vertex of the parabola through the three.
+    if 0 < bd < nd - 1:
+        cm = np.float32(cmi)
+        cp = np.float32(cpi)
         den = cm - np.float32(2.0) * np.float32(best) + cp
         if den > 0:
             return np.float32(bd + 0.5 * (cm - cp) / den)
@@ -746,6 +767,9 @@ def _census_box_wta(pl, pr, nd, rw, rh, invalid, nchunks, uniqueness):
         crr = np.zeros((pl.shape[0], w + ndp), np.uint8)
         hs = np.empty(ndp, np.uint16)
         rpk = np.empty(w + ndp, np.uint32)
+        pkrow = np.empty(w, np.uint32)      # the row's left winners and their neighbours'
+        cmrow = np.empty(w, np.uint16)      # costs, for the subpixel pass after the row
+        cprow = np.empty(w, np.uint16)
         for r in range(max(y0 - rh, 0), min(y0 + rh, h - 1) + 1):
             _hamming_full_row(pl, pr, r, crr, ndp, invalid, ring[r % nring])
         for dy in range(-rh, rh + 1):
@@ -788,7 +812,20 @@ def _census_box_wta(pl, pr, nd, rw, rh, invalid, nchunks, uniqueness):
                 k0 = w - 1 - x
                 pk = _box_wta_pixel(hs, vs[min(x + rw, w - 1)], vs[max(x - rw - 1, 0)],
                                     rpk[k0:k0 + ndp], dcode)
-                dly[x] = _left_disparity(hs, pk, nd, uniqueness)
+                if uniqueness > 0.0:
+                    dly[x] = _left_disparity(hs, pk, nd, uniqueness)
+                else:
+                    bd = np.int64(pk & np.uint32(0xFFFF))
+                    pkrow[x] = pk
+                    cmrow[x] = hs[max(bd - 1, 0)]
+                    cprow[x] = hs[min(bd + 1, ndp - 1)]
+            if uniqueness <= 0.0:
+                # the subpixel step as a pass of its own: inside the candidate loop its
+                # dependent loads and the division stalled every pixel (~2 ms per frame)
+                for x in range(w):
+                    pk = pkrow[x]
+                    dly[x] = _parabola_vertex(np.int64(pk & np.uint32(0xFFFF)),
+                                              pk >> np.uint32(16), cmrow[x], cprow[x], nd)
             dry = dr[y]
             for xr in range(w):
                 v = rpk[w - 1 - xr]

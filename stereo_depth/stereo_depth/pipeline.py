@@ -300,9 +300,22 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, method: str = 'sgm',
     lc, rc = np.ascontiguousarray(left[:, m:]), np.ascontiguousarray(right[:, :w - m])
     check_pair(lc, rc, max_disparity)
     d = METHODS[method].function(lc, rc, int(max_disparity), **p)
-    d[(d < 0.5) | (d > int(max_disparity) - 1.5)] = np.nan      # clamped at the band's ends
-    out = np.full(left.shape[:2], np.nan, np.float32)
-    out[:, m:] = d + np.float32(m)
+    return _place_band(d, m, float(int(max_disparity) - 1.5), w)
+
+
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def _place_band(d, m, hi, w):
+    # The band's disparities d (H, W - m) into the full-width map: d + m in columns m.., NaN
+    # left of m and where d was clamped at an end of the band (d < 0.5 or d > D - 1.5).
+    h = d.shape[0]
+    out = np.empty((h, w), np.float32)
+    fm = np.float32(m)
+    for y in range(h):
+        for x in range(m):
+            out[y, x] = np.nan
+        for x in range(w - m):
+            v = d[y, x]
+            out[y, m + x] = np.float32(np.nan) if (v < 0.5 or v > hi) else v + fm
     return out
 
 
@@ -403,16 +416,22 @@ class PackedCloud(NamedTuple):
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
-def _pack_cloud(z, s, fx, fy, cx, cy, colours, use_rgb, organized, out, out_u32):
+def _pack_cloud(z, s, fx, fy, cx, cy, colours, use_rgb, organized, out, out_u32,
+                from_disparity, fb, doffs):
     # One pass over the decimated grid: x, y, z (+ rgb bits) written into the message layout.
     # The float32 arithmetic is the one of cloud_points ((u - cx) * z / fx), so the points are
     # bit-identical. Unorganised: only finite depths, compacted in raster order.
+    # from_disparity: z holds disparities, the depth is disparity_to_depth's float32
+    # fb / (d + doffs) (NaN unless d + doffs > 0), computed at the kept pixels only.
     h, w = z.shape
     n = 0
     for i in range((h + s - 1) // s):
         v = np.float32(i * s)
         for j in range((w + s - 1) // s):
             zz = z[i * s, j * s]
+            if from_disparity:
+                dd = zz + doffs
+                zz = fb / dd if dd > 0 else np.float32(np.nan)
             if not organized and not np.isfinite(zz):
                 continue
             u = np.float32(j * s)
@@ -427,9 +446,11 @@ def _pack_cloud(z, s, fx, fy, cx, cy, colours, use_rgb, organized, out, out_u32)
     return n
 
 
-def cloud_message_data(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+def cloud_message_data(depth: Optional[np.ndarray], fx: float, fy: float, cx: float, cy: float,
                        decimation: int = 1, organized: bool = False,
-                       colours: Optional[np.ndarray] = None) -> PackedCloud:
+                       colours: Optional[np.ndarray] = None, *,
+                       disparity: Optional[np.ndarray] = None, baseline: float = 0.0,
+                       doffs: float = 0.0) -> PackedCloud:
     """
     Pack the points of :func:`cloud_points` into PointCloud2 data in one pass.
 
@@ -444,12 +465,22 @@ def cloud_message_data(depth: np.ndarray, fx: float, fy: float, cx: float, cy: f
     :param organized: True: the (ceil(H/s), ceil(W/s)) grid with NaN points where unknown;
         False: only the finite points, height 1.
     :param colours: optional (H, W, 3) uint8 RGB of the left image (adds an ``rgb`` field).
+    :param disparity: instead of ``depth`` (pass None): (H, W) disparities [px]; the depth of
+        the kept pixels is :func:`disparity_to_depth`'s (``baseline`` [m], ``doffs`` [px]),
+        bit for bit, computed for those pixels only (no full-size depth image).
     :return: :class:`PackedCloud`.
     """
     s = int(decimation)
     if s < 1:
         raise ValueError(f'decimation must be >= 1, got {s}')
-    z = np.asarray(depth, dtype=np.float32)
+    from_disparity = disparity is not None
+    if from_disparity == (depth is not None):
+        raise ValueError('give either depth or disparity')
+    if from_disparity and (not np.isfinite(baseline) or baseline <= 0):
+        raise ValueError(f'baseline must be a positive number of metres, got {baseline}')
+    if from_disparity and (not np.isfinite(fx) or fx <= 0):
+        raise ValueError(f'focal length must be a positive number of pixels, got {fx}')
+    z = np.asarray(disparity if from_disparity else depth, dtype=np.float32)
     if z.ndim != 2:
         raise ValueError(f'depth must be (H, W), got shape {z.shape}')
     h, w = z.shape
@@ -465,7 +496,8 @@ def cloud_message_data(depth: np.ndarray, fx: float, fy: float, cx: float, cy: f
     k = 4 if use_rgb else 3
     out = np.empty((hs * ws, k), np.float32)
     n = _pack_cloud(z, s, np.float32(fx), np.float32(fy), np.float32(cx), np.float32(cy), col,
-                    use_rgb, bool(organized), out, out.view(np.uint32))
+                    use_rgb, bool(organized), out, out.view(np.uint32), from_disparity,
+                    np.float32(fx * baseline), np.float32(doffs))
     fields = ('x', 'y', 'z', 'rgb') if use_rgb else ('x', 'y', 'z')
     if organized:
         return PackedCloud(out.reshape(hs, ws, k), fields, n == 0 or

@@ -501,7 +501,6 @@ class StereoDepthNode(Node):
             mp.pop('p1', None)
             mp.pop('p2', None)
         disp = compute_disparity(limg, rimg, method, ndisp, min_disparity=dmin, **mp)
-        depth = disparity_to_depth(disp, geo['fx'], geo['baseline'], geo['doffs'])
         header = left.header
         with self._lock:
             # counted before publishing, so a subscriber never sees more outputs than counts
@@ -510,11 +509,15 @@ class StereoDepthNode(Node):
         if want_disparity:
             self.pub_disparity.publish(self._disparity_message(disp, geo, header, dmin, ndisp))
         if want_depth:
+            depth = disparity_to_depth(disp, geo['fx'], geo['baseline'], geo['doffs'])
             self.pub_depth.publish(numpy_to_image(depth, '32FC1', header))
         if want_points:
-            packed = cloud_message_data(depth, geo['fx'], geo['fy'], geo['cx'], geo['cy'],
+            # the depth of the kept pixels only, bit for bit disparity_to_depth's (tested)
+            packed = cloud_message_data(None, geo['fx'], geo['fy'], geo['cx'], geo['cy'],
                                         int(params['point_decimation']),
-                                        bool(params['organized_cloud']), colours)
+                                        bool(params['organized_cloud']), colours,
+                                        disparity=disp, baseline=geo['baseline'],
+                                        doffs=geo['doffs'])
             msg = float32_fields_to_pointcloud2(packed.buffer, packed.fields, header,
                                                 is_dense=packed.is_dense)
             self.pub_points.publish(msg)

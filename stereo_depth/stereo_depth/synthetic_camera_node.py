@@ -398,10 +398,19 @@ class SyntheticCameraNode(Node):
         v = self._values
         enc = str(v['encoding'])
         truth = None
+        want_depth = bool(v['ground_truth'] and v['publish_depth']
+                          and self._pub_depth.get_subscription_count())
+        want_disparity = bool(v['ground_truth'] and v['publish_disparity']
+                              and (self._pub_disp.get_subscription_count()
+                                   or self._pub_occ.get_subscription_count()))
         if self._source is not None:
+            # without a truth-image subscriber the pair is rendered without them (same images;
+            # no occlusion mask, no fresh truth buffers: ~4 ms CPU less per pair)
             left, right, truth = self._source.render(scene_frame(
-                self._frame, self._source.scene.n_frames, str(v['playback'])))
-            disparity, depth, occ = truth['disparity'], truth['depth'], truth['occlusion']
+                self._frame, self._source.scene.n_frames, str(v['playback'])),
+                images_only=not (want_depth or want_disparity))
+            disparity, depth, occ = (truth.get('disparity'), truth.get('depth'),
+                                     truth.get('occlusion'))
             f, baseline = self._source.camera.fx, self._source.camera.baseline
         else:
             s = self._still
@@ -424,13 +433,10 @@ class SyntheticCameraNode(Node):
                 for name, T in truth['poses'].items():
                     self._pose_pubs[name].publish(matrix_to_pose_stamped(T, hl))
             # truth images only for a subscriber (they cost more than the pair itself)
-            if (v['publish_depth'] and depth is not None
-                    and self._pub_depth.get_subscription_count()):
+            if want_depth and depth is not None:
                 self._pub_depth.publish(numpy_to_image(np.ascontiguousarray(depth, np.float32),
                                                        '32FC1', hl))
-            if (v['publish_disparity'] and disparity is not None
-                    and (self._pub_disp.get_subscription_count()
-                         or self._pub_occ.get_subscription_count())):
+            if want_disparity and disparity is not None:
                 self._pub_disp.publish(self._disparity_msg(disparity, f, baseline, hl))
                 if occ is not None:
                     self._pub_occ.publish(numpy_to_image(occ.astype(np.uint8) * 255, 'mono8',

@@ -329,6 +329,45 @@ def test_speckle_median_and_background_fill():
     np.testing.assert_array_equal(fill_invalid(row), [[7, 3, 3, 3, 3, 9, 9]])
 
 
+def _opencv_speckles(d, max_size, max_diff):
+    # the reference: OpenCV's filterSpeckles on the 1/16 px int16 fixed point, NaN invalid
+    import cv2
+    fixed = np.where(np.isnan(d), -1.0, np.round(d * 16.0)).astype(np.int16)
+    cv2.filterSpeckles(fixed, -1, int(max_size), int(round(max_diff * 16)))
+    out = d.copy()
+    out[fixed == -1] = np.nan
+    return out
+
+
+def test_speckle_filter_is_opencvs_filterspeckles_bit_for_bit():
+    # random maps of every kind the filter meets: noise, quantised plateaus, blocky surfaces
+    # with noise, holes, values rounding to OpenCV's invalid -1 (1/16 px); several sizes and
+    # tolerances, one-row and one-column maps included
+    import cv2
+    rng = np.random.default_rng(7)
+    removed = 0
+    for t in range(120):
+        h, w = (int(v) for v in rng.integers(1, 50, 2))
+        if t % 3 == 0:
+            d = rng.uniform(0, 6, (h, w)).astype(np.float32)
+        elif t % 3 == 1:
+            d = (np.round(rng.uniform(0, 8, (h, w)) * 4) / 4).astype(np.float32)
+        else:
+            small = rng.uniform(0, 30, (max(1, h // 4), max(1, w // 4))).astype(np.float32)
+            d = cv2.resize(small, (w, h), interpolation=cv2.INTER_NEAREST)
+            d += rng.uniform(-0.7, 0.7, d.shape).astype(np.float32)
+        d[rng.random((h, w)) < rng.uniform(0, 0.5)] = np.nan
+        d[rng.random((h, w)) < 0.02] = -0.06
+        for max_size, max_diff in ((1, 0.0), (5, 1.0), (20, 0.5), (100, 2.0)):
+            got = remove_speckles(d, max_size, max_diff)
+            want = _opencv_speckles(d, max_size, max_diff)
+            np.testing.assert_array_equal(got, want)
+            removed += int(np.isnan(want).sum() - np.isnan(d).sum())
+    assert removed > 1000                   # the cases do remove blobs
+    with pytest.raises(ValueError, match='2047'):
+        remove_speckles(np.full((3, 3), 3000.0, np.float32))
+
+
 @pytest.mark.parametrize('size', [3, 5])
 def test_median_filter_is_the_median_of_the_valid_window_values(size):
     # brute force: every non-NaN pixel takes np.median of the non-NaN values of its window
@@ -507,6 +546,34 @@ def test_packed_cloud_is_the_old_cloud_byte_for_byte(organized, colour):
         cloud_message_data(depth, fx, fy, cx, cy, 0)
     with pytest.raises(ValueError, match='colours'):
         cloud_message_data(depth, fx, fy, cx, cy, 1, False, np.zeros((h, w), np.uint8))
+
+
+@pytest.mark.parametrize('organized', [False, True])
+@pytest.mark.parametrize('decimation', [1, 2, 3])
+def test_packed_cloud_from_disparity_is_the_one_from_the_depth_image(organized, decimation):
+    # the node packs the cloud from the disparity (depth of the kept pixels only): the same
+    # bytes as disparity_to_depth followed by cloud_message_data, doffs and holes included
+    rng = np.random.default_rng(5)
+    h, w = 53, 71
+    fx, fy, cx, cy, baseline = 525.3, 523.9, 33.7, 25.1, 0.12
+    for doffs in (0.0, -3.5, 2.25):
+        disp = rng.uniform(0.0, 160.0, (h, w)).astype(np.float32)
+        disp[rng.random((h, w)) < 0.2] = np.nan
+        disp[0, :5] = np.float32(-doffs)              # d + doffs == 0: no depth
+        colours = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        for col in (None, colours):
+            want = cloud_message_data(disparity_to_depth(disp, fx, baseline, doffs), fx, fy,
+                                      cx, cy, decimation, organized, col)
+            got = cloud_message_data(None, fx, fy, cx, cy, decimation, organized, col,
+                                     disparity=disp, baseline=baseline, doffs=doffs)
+            assert got.buffer.tobytes() == want.buffer.tobytes()
+            assert got.buffer.shape == want.buffer.shape and got.fields == want.fields
+            assert got.is_dense == want.is_dense
+            assert want.buffer.shape[1] > 10
+    with pytest.raises(ValueError, match='either'):
+        cloud_message_data(disp, fx, fy, cx, cy, disparity=disp, baseline=baseline)
+    with pytest.raises(ValueError, match='baseline'):
+        cloud_message_data(None, fx, fy, cx, cy, disparity=disp, baseline=0.0)
 
 
 def test_evaluation_metrics_by_hand():

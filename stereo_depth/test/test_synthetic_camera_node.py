@@ -265,10 +265,10 @@ def test_free_running_node_publishes_every_period_or_counts_the_drop(ros_node):
         render = cam._source.render
         n = {'k': 0}
 
-        def slow_render(frame):
+        def slow_render(frame, **kwargs):
             n['k'] += 1
             clock['t'] += 0.26 if n['k'] % 4 == 0 else 0.02
-            return render(frame)
+            return render(frame, **kwargs)
         cam._source.render = slow_render
         _rcl_wake_ups(clock, 0.1, 20.0, cam._on_timer)
         published, dropped = cam.frames_published, cam.dropped_frames

@@ -49,12 +49,18 @@ class SyntheticStereo:
         self.renderer = StereoRenderer(self.camera, meshes, seed=self.scene.seed,
                                        options=self.options)
 
-    def render(self, frame_index: int) -> Tuple[np.ndarray, np.ndarray, dict]:
-        """(left, right, truth) of frame ``frame_index`` (wraps around the scene length)."""
+    def render(self, frame_index: int,
+               images_only: bool = False) -> Tuple[np.ndarray, np.ndarray, dict]:
+        """
+        (left, right, truth) of frame ``frame_index`` (wraps around the scene length).
+
+        ``images_only``: no truth images (see ``StereoRenderer.render``), same pair.
+        """
         k = self.scene.frame(frame_index)
         left, right, truth = self.renderer.render(self.scene.poses(k),
                                                   noise_key=(int(frame_index) % (1 << 32),),
-                                                  static=self.scene.static)
+                                                  static=self.scene.static,
+                                                  images_only=images_only)
         truth.update(self.scene.extras(k))
         truth.update({'frame_index': k, 'time': k / self.scene.fps, 'scene': self.scene.name,
                       'seed': self.scene.seed, 'T_world_camera': self.scene.T_world_camera})

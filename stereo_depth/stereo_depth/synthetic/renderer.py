@@ -211,8 +211,12 @@ class StereoRenderer:
                 'oid': np.full((H, W), -1, np.int16), 'fid': np.full((H, W), -1, np.int32)}
 
     def _draw(self, tris: Dict[str, np.ndarray], base: Dict[str, np.ndarray], right: bool,
-              id_offset: int) -> Tuple[Dict[str, np.ndarray], np.ndarray]:
-        """Render ``tris`` over a copy of the view buffers ``base``; returns (view, setup)."""
+              id_offset: int, reuse: bool = False) -> Tuple[Dict[str, np.ndarray], np.ndarray]:
+        """
+        Render ``tris`` over a copy of the view buffers ``base``; returns (view, setup).
+
+        ``reuse``: the truth buffers too are working buffers, overwritten by the next call.
+        """
         cam = self.camera
         V = tris['V']
         if right:
@@ -225,7 +229,9 @@ class StereoRenderer:
         work = self._work[1 if right else 0]
         view = {}
         for k, a in base.items():
-            if k in ('z', 'tid', 'img'):
+            if k in ('z', 'tid', 'img') or reuse:
+                if k not in work:
+                    work[k] = np.empty_like(a)
                 np.copyto(work[k], a)
                 view[k] = work[k]
             else:
@@ -266,7 +272,8 @@ class StereoRenderer:
         return quantize(img, 255.0 * gain, self._noise, offset, float(opt.noise_sigma))
 
     def render(self, poses: Mapping[str, np.ndarray], noise_key: Sequence[int] = (0,),
-               static: Sequence[str] = ()) -> Tuple[np.ndarray, np.ndarray, dict]:
+               static: Sequence[str] = (), images_only: bool = False
+               ) -> Tuple[np.ndarray, np.ndarray, dict]:
         """
         Render one stereo pair.
 
@@ -276,6 +283,10 @@ class StereoRenderer:
             table): their layer is rendered once and reused while their poses are unchanged
             (checked exactly), so only the moving objects are drawn per frame. The result is
             identical to rendering everything (static objects come first in the z-buffer).
+        :param images_only: skip the truth images (no occlusion mask, no fresh truth buffers):
+            the same images, bit for bit, and a truth dict with ``poses``, ``object_names`` and
+            ``camera`` only (a live camera whose truth images nobody reads: ~4 ms less per
+            pair).
         :returns: (left, right, truth): uint8 images (H, W) mono or (H, W, 3) rgb, and the truth
             dict documented in the module docstring.
         :raises KeyError: for a pose of an unknown object.
@@ -287,11 +298,12 @@ class StereoRenderer:
         layer = self._static_layer(static_poses)
         tris = self._triangles(moving)
         n_static = layer['count']
-        left, _ = self._draw(tris, layer['left'], False, n_static)
-        right, setup_r = self._draw(tris, layer['right'], True, n_static)
-        tris_r = np.concatenate([layer['setup_r'], setup_r])
-        occ = occlusion_mask(left['z'], left['tid'], right['tid'], tris_r, cam.fx, cam.fy,
-                             cam.cx, cam.cy, cam.baseline)
+        left, _ = self._draw(tris, layer['left'], False, n_static, images_only)
+        right, setup_r = self._draw(tris, layer['right'], True, n_static, images_only)
+        if not images_only:
+            tris_r = np.concatenate([layer['setup_r'], setup_r])
+            occ = occlusion_mask(left['z'], left['tid'], right['tid'], tris_r, cam.fx, cam.fy,
+                                 cam.cx, cam.cy, cam.baseline)
         img_l, img_r = left['img'], right['img']
         if opt.color:
             img_l = colorize(img_l, left['oid'], self._palette)
@@ -299,6 +311,10 @@ class StereoRenderer:
         rng = np.random.default_rng([self.seed, *[int(k) for k in noise_key]])
         left_img = self._photometric(img_l, 1.0, rng)
         right_img = self._photometric(img_r, opt.gain_right, rng)
+        if images_only:
+            return left_img, right_img, {
+                'poses': {name: np.array(T, dtype=float) for name, T in poses.items()},
+                'object_names': list(self.names), 'camera': cam.as_dict()}
         depth_l = left['z32']
         truth = {
             'depth': depth_l,
