@@ -142,8 +142,8 @@ class ObjectLocalizerNode(Node):
                                _float('re-verification period of static objects [s of cloud '
                                       'stamps]', 0.0, 3600.0))
         self.declare_parameter('relock_window', 1.0,
-                               _float('after a loss, for this long [s of cloud stamps] the '
-                                      'search first refines the last verified pose (0: off)',
+                               _float('after a loss, for this long [s of cloud stamps] the lost '
+                                      'track is re-acquired locally first (0: off)',
                                       0.0, 60.0))
         self.declare_parameter('relock_shift', 0.012,
                                _float('local re-acquisition also starts the ICP shifted by '

@@ -144,12 +144,14 @@ class TrackerSettings:
         parts) and is only published if the last known pose is clearly nearer one of them.
     :ivar twin_reacquire_radius: a part with an identical twin is re-acquired only within this
         mean displacement [m] of its last known pose (and clearly nearer it than the twin's).
-    :ivar relock_window: for this long [s, cloud stamps] after a loss, the search of a lost
-        track first refines the last verified pose in the new cloud and takes it when it passes
-        the acquisition check (and, for a part with an identical twin, stays within
-        ``twin_reacquire_radius`` of it); 0 turns it off. A track lost to a brief occlusion or
-        a borderline check comes back at the cost of one ICP + check instead of a global
-        search, and identical parts keep their names.
+    :ivar relock_window: for this long [s, cloud stamps] after a loss (from the cloud of the
+        loss), the search of a lost track first re-acquires it locally (:meth:`ObjectTracker.
+        local_starts`: ICP from the prediction, the last verified pose and perturbed starts,
+        each through the acquisition check; a part with an identical twin named by
+        :func:`object_localizer.naming.may_name`); 0 turns it off. A track lost to a brief
+        occlusion, a borderline check or a motion beyond the ICP's reach comes back at the cost
+        of ~14 ICP + check (0.1-0.4 s CPU) instead of a global search, and identical parts keep
+        their names.
     :ivar relock_shift: local re-acquisition (within ``relock_window``) also starts the ICP
         from the predicted / last pose shifted by +-this [m] along each model axis ...
     :ivar relock_turn: ... and turned by +-this [rad] about each model axis about its centre

@@ -14,7 +14,7 @@ from stereo_manip_tools.transforms import make_transform, rotation_about_axis
 
 @pytest.fixture(scope='module')
 def bricks():
-    """Meshes and tracking models of the two identical bricks (different origins)."""
+    """Return the meshes and tracking models of the two identical bricks."""
     meshes = {n: load_obj(find_model(n)) for n in ('link_base', 'link_arm')}
     return meshes, {n: prepare_tracking_model(m) for n, m in meshes.items()}
 
@@ -116,9 +116,10 @@ def test_a_part_beyond_the_icp_reach_is_reacquired_locally_without_a_global_sear
 
 def test_identical_part_lost_next_to_its_verified_twin_keeps_its_name(bricks):
     """
-    Both bricks in view; the base is lost and has slid 25 mm along its length when it is
-    searched again (0.3 s after its last verified pose: beyond the 20 mm a pose of unknown age
-    allows, within the 50 mm of that age).
+    Both bricks in view; the base, lost, has slid 25 mm along its length when searched again.
+
+    0.3 s after its last verified pose: beyond the 20 mm a pose of unknown age allows, within
+    the 50 mm of that age.
 
     With the arm verified in the same cloud (its place excluded by the penetration check) the
     base is re-acquired locally at its own brick. With the arm unverified and last seen nearer
