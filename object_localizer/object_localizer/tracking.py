@@ -44,7 +44,7 @@ transforms model frame -> sensor frame.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import enum
 import time
 from typing import Any, Callable, Deque, List, Optional, Sequence, Tuple
@@ -880,6 +880,15 @@ class ObjectTracker:
                 pose2, q2 = self._refine_and_check(scene, last, last)
                 if q2.passed:
                     pose, q = pose2, q2
+            if q.passed and self.twins:
+                # an identical part not yet verified in this cloud does not stop the ICP from
+                # sliding onto its place (the penetration check only knows verified poses):
+                # the tracked pose must be clearly this part's (measured: link_base tracked
+                # onto link_arm's place after the scene's loop jump, names swapped for 25
+                # clouds, bench/localizer_reacquisition.py)
+                ok, why = self._may_name(pose, stamp_ns)
+                if not ok:
+                    q = replace(q, passed=False, reason=f'identical part: {why}')
             if q.passed:
                 self._accept(stamp_ns, pose)
                 return TrackUpdate(pose, TrackState.TRACKING, q, 'tracking')
@@ -1012,7 +1021,7 @@ class ObjectTracker:
     def _relock_due(self, stamp_ns: int) -> bool:
         """Return whether a lost track is re-acquired locally first in this cloud."""
         return (self.state == TrackState.LOST and self.reference is not None
-                and self._lost_ns is not None
+                and self._lost_ns is not None and self.settings.relock_window > 0
                 and 0 <= stamp_ns - self._lost_ns <= self.settings.relock_window * 1e9)
 
     def expected_poses(self, stamp_ns: int) -> List[Tuple[np.ndarray, Optional[float]]]:
