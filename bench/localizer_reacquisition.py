@@ -37,8 +37,7 @@ from stereo_manip_tools.bench_report import goal, write_report
 # its own cache of the stereo clouds: the default one of localizer_graph_cpu.py may hold clouds
 # of an older stereo node (a flat surface at the band limit, which the node now leaves unknown)
 os.environ.setdefault('LOCALIZER_GRAPH_CACHE', '/tmp/localizer_reacquisition_cache')
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from localizer_graph_cpu import spread, stereo_clouds  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # localizer_graph_cpu
 
 PEER = {'relock_window': 0.0, 'twin_max_speed': 0.0, 'search_cpu_share': 1.0}
 
@@ -52,6 +51,7 @@ def run(data: List[Dict[str, Any]], step: int, overrides: Dict[str, Any]) -> Dic
     """Feed the clouds to a fresh in-process node with ``overrides``; score every outcome."""
     from rclpy.parameter import Parameter
 
+    from localizer_graph_cpu import spread
     from object_localizer.evaluation import add_s
     from object_localizer.localizer_node import ObjectLocalizerNode
     from stereo_manip_bringup.demo import _localizer
@@ -120,6 +120,8 @@ def main() -> None:
     parser.add_argument('--clouds', type=int, default=60)
     args = parser.parse_args()
     import rclpy
+
+    from localizer_graph_cpu import spread, stereo_clouds
     rclpy.init()
     data = stereo_clouds('revolute_pair', frames_of(args.step, args.clouds))
     runs = {}
