@@ -53,6 +53,9 @@ import numpy as np  # noqa: E402
 from stereo_manip_tools.bench_report import goal, write_report  # noqa: E402
 
 I4 = np.eye(4)
+#: frame-to-frame correlation of the tracks' pose errors (``noisy_track``'s AR(1) rho), stated
+#: to the recognition as it is stated the sigmas (``RecognitionOptions.noise_correlation``)
+RHO = 0.85
 LEVELS = [('1mm_1deg', 1e-3, np.deg2rad(1.0)), ('1.5mm_2deg', 1.5e-3, np.deg2rad(2.0))]
 METHODS = ('recognised_offline', 'recognised_online', 'peer_per_frame_detection')
 
@@ -130,7 +133,9 @@ def run(quick: bool, dump: str = '', seed_base: int = SEED) -> None:
         for level, st, sr in LEVELS:
             for seed in range(seeds):
                 Tf, Tt, To = noisy_track(tr, rng, st, sr)
-                opts = RecognitionOptions(sigma_translation=st, sigma_rotation=sr)
+                # the stated noise model: the generator's sigma and frame-to-frame correlation
+                opts = RecognitionOptions(sigma_translation=st, sigma_rotation=sr,
+                                          noise_correlation=RHO)
                 res = {}
                 t0 = time.perf_counter()
                 res['recognised_offline'] = correct_trajectory(m, f, To, Tf, recognition=opts)

@@ -62,7 +62,7 @@ __all__ = ['ContactCorrectionNode', 'main', 'model_path_problem']
 _RECOGNITION_PARAMETERS = ('recognition', 'sigma_translation', 'sigma_rotation',
                            'search_margin', 'free_dof_penalty', 'switch_cost',
                            'ambiguity_margin', 'evidence_chi2', 'max_correction_sigma',
-                           'optimal',
+                           'noise_correlation', 'optimal',
                            'tolerance', 'penetration_tolerance', 'angle_tolerance',
                            'max_translation', 'max_rotation', 'check_penetration',
                            'element_margin')
@@ -168,6 +168,10 @@ class ContactCorrectionNode(Node):
             'correction-size guard k: a correction over k sigma_translation or k '
             'sigma_rotation is refused; relations with fewer constraints, then only the '
             'penetration removed, are tried; counted as guarded; 0: off', 0.0, 1000.0))
+        self.declare_parameter('noise_correlation', 0.0, _float(
+            'frame-to-frame correlation (AR(1) rho) of the pose errors: the correct_trajectory '
+            "service's temporal model scores a held relation by the innovation of its noise "
+            'estimate (the online path does not use it); 0: independent errors', 0.0, 0.99))
         self.declare_parameter('element_margin', 1e-6, _float(
             'largest distance [m] of a corrected contact point outside its element (given / '
             'detected relations; recognised ones use the search margin)', 0.0, 0.05))
@@ -285,7 +289,8 @@ class ContactCorrectionNode(Node):
             switch_cost=g('switch_cost').value,
             ambiguity_margin=g('ambiguity_margin').value,
             evidence_chi2=g('evidence_chi2').value,
-            max_correction_sigma=g('max_correction_sigma').value)
+            max_correction_sigma=g('max_correction_sigma').value,
+            noise_correlation=g('noise_correlation').value)
 
     def _relation(self):
         text = str(self.get_parameter('relation').value).strip()

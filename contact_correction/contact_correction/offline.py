@@ -303,6 +303,10 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
                         'sigma_rotation is refused; relations with fewer constraints, then '
                         'only the penetration removed, are tried; flagged "guard" in the '
                         'status (0: off)')
+    g.add_argument('--noise-correlation', type=float, default=0.0,
+                   help='frame-to-frame correlation of the pose errors (AR(1) rho, [0, 1)): the '
+                        'offline temporal model scores a held relation by the innovation of '
+                        'its noise estimate (not used with --online; 0: independent errors)')
     g.add_argument('--tolerance', type=float, default=0.002,
                    help='contact distance of --per-frame-detection [m]')
     g.add_argument('--penetration-tolerance', type=float, default=None,
@@ -331,6 +335,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
             ap.error(f'--{name.replace("_", "-")} must be a finite number >= 0, got {v}')
     if args.sigma_translation <= 0 or args.sigma_rotation_deg <= 0:
         ap.error('--sigma-translation and --sigma-rotation-deg must be > 0')
+    if not (np.isfinite(args.noise_correlation) and 0.0 <= args.noise_correlation < 1.0):
+        ap.error(f'--noise-correlation must be in [0, 1), got {args.noise_correlation}')
     return args
 
 
@@ -388,7 +394,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                            switch_cost=args.switch_cost,
                            ambiguity_margin=args.ambiguity_margin,
                            evidence_chi2=args.evidence_chi2,
-                           max_correction_sigma=args.max_correction_sigma)
+                           max_correction_sigma=args.max_correction_sigma,
+                           noise_correlation=args.noise_correlation)
     relations = [relation] * len(Tm) if relation is not None else None
     try:
         results = correct_trajectory(moving, fixed, Tm, Tf, relations=relations,

@@ -102,6 +102,8 @@ def test_offline_explicit_relation_units_and_help(tmp_path, t_track, capsys):
                  str(block_file), '--relation', 'vertex 0 face 4']) == 2
     with pytest.raises(SystemExit):
         main([str(src), '-o', str(out), '--sigma-translation', 'nan'])
+    with pytest.raises(SystemExit):     # an AR(1) correlation must be in [0, 1)
+        main([str(src), '-o', str(out), '--noise-correlation', '1.0'])
     # defaults are shown in --help; a missing --moving is announced
     with pytest.raises(SystemExit):
         main(['--help'])

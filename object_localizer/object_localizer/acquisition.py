@@ -160,11 +160,14 @@ class AcquisitionScene:
     :ivar points: (N, 3) finite scene points [m], optical frame.
     :ivar normals: (N, 3) given normals or None (then estimated per sampling step).
     :ivar camera: intrinsics or None (a virtual camera is used for visibility).
+    :ivar stereo_baseline: stereo baseline [m] (second camera at +x) used when ``camera`` is
+        None or carries none: the visibility score's stereo reasoning (0: not stereo).
     """
 
     points: np.ndarray
     normals: Optional[np.ndarray] = None
     camera: Any = None
+    stereo_baseline: float = 0.0
     _clouds: Dict[Any, o3d.geometry.PointCloud] = field(default_factory=dict, repr=False)
     _observed: Optional[ObservedDepth] = field(default=None, repr=False)
     _rays: Optional[SceneCloud] = field(default=None, repr=False)
@@ -247,7 +250,8 @@ class AcquisitionScene:
     def observed(self) -> ObservedDepth:
         """Observed depth image for verification (built once)."""
         if self._observed is None:
-            self._observed = observe_depth(self.points, self.camera)
+            self._observed = observe_depth(self.points, self.camera,
+                                           stereo_baseline=self.stereo_baseline)
         return self._observed
 
 
@@ -313,7 +317,8 @@ def prepare_acquisition_model(mesh: PolygonMesh, *, ppf_relative_step: float = 0
 
 
 def prepare_acquisition_scene(scene_points: np.ndarray, scene_normals: Optional[np.ndarray] = None,
-                              camera: CameraLike = None) -> AcquisitionScene:
+                              camera: CameraLike = None, *,
+                              stereo_baseline: float = 0.0) -> AcquisitionScene:
     """
     Wrap a scene cloud for :func:`acquire_object` (reuse it for every object of the cloud).
 
@@ -321,8 +326,13 @@ def prepare_acquisition_scene(scene_points: np.ndarray, scene_normals: Optional[
         points are dropped (with their normals).
     :param scene_normals: optional normals of the same shape.
     :param camera: intrinsics (:func:`~object_localizer.verification.as_camera` forms) or None.
-    :raises ValueError: wrong shapes or fewer than 10 finite points.
+    :param stereo_baseline: stereo baseline [m] when ``camera`` is None or has none (the
+        virtual camera of :func:`~object_localizer.verification.observe_depth` then reasons
+        about what stereo can measure too); 0: not stereo.
+    :raises ValueError: wrong shapes, fewer than 10 finite points, negative baseline.
     """
+    if not stereo_baseline >= 0:
+        raise ValueError(f'stereo_baseline must be >= 0, got {stereo_baseline}')
     P = np.asarray(scene_points, dtype=float)
     if P.ndim == 3 and P.shape[2] == 3:
         P = P.reshape(-1, 3)
@@ -339,7 +349,7 @@ def prepare_acquisition_scene(scene_points: np.ndarray, scene_normals: Optional[
     P = P[ok]
     if len(P) < 10:
         raise ValueError(f'scene has only {len(P)} finite points')
-    return AcquisitionScene(P, N, as_camera(camera))
+    return AcquisitionScene(P, N, as_camera(camera), float(stereo_baseline))
 
 
 def _rough_ppf(model: AcquisitionModel, scene: AcquisitionScene, seed: int,

@@ -19,7 +19,7 @@ from __future__ import annotations
 from dataclasses import replace
 import threading
 import time
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
@@ -30,12 +30,13 @@ from object_localizer.conversions import cloud_xyz, track_status
 from object_localizer.naming import identical_groups, name_identical_parts
 from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
     same_shape, SceneCloud, TrackerSettings, TrackState, TrackUpdate
+from object_localizer.verification import PinholeCamera
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
     SetParametersResult
 import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import CameraInfo, PointCloud2
 from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, stamp_to_ns, \
     xyz_to_pointcloud2
@@ -197,7 +198,15 @@ class ObjectLocalizerNode(Node):
         if initial is not None and len(initial) != 7 * len(names):
             raise ValueError(f'initial_poses has {len(initial)} numbers; expected 7 per model '
                              f'({7 * len(names)} for {names})')
-        acquirer = make_acquirer(self.get_parameter('acquisition_method').value)
+        # the global search's visibility score models the stereo camera: intrinsics from the
+        # left CameraInfo of the cloud's frame (a virtual camera until one arrives), baseline
+        # from stereo_baseline (the check's)
+        self._camera: Optional[PinholeCamera] = None
+        self._cloud_frame = ''
+        acquirer = make_acquirer(self.get_parameter('acquisition_method').value,
+                                 camera=self._acquisition_camera,
+                                 stereo_baseline=lambda: self.get_parameter(
+                                     'stereo_baseline').value)
         self._startup['parameters'] = time.monotonic()
         self.trackers: Dict[str, ObjectTracker] = {}
         self.pose_pubs, self.status_pubs, self.track_pubs, self.cloud_pubs = {}, {}, {}, {}
@@ -244,6 +253,7 @@ class ObjectLocalizerNode(Node):
             self.tf.follow(pub, name)
         self.create_subscription(PointCloud2, 'points2', self._on_cloud,
                                  input_qos_profile(self.get_parameter('input_qos').value))
+        self.create_subscription(CameraInfo, 'left/camera_info', self._on_camera_info, 1)
         self.create_timer(10.0, self._log_stats)
         self.get_logger().info(
             f'localising {", ".join(names)} in points2'
@@ -272,8 +282,32 @@ class ObjectLocalizerNode(Node):
                     tracker.settings = replace(tracker.settings, **changes)
         return SetParametersResult(successful=True)
 
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        """Keep the left camera's rectified intrinsics (P) for the acquisition's score."""
+        P = np.asarray(msg.p, dtype=float).reshape(3, 4)
+        if not (np.all(np.isfinite(P)) and P[0, 0] > 0 and P[1, 1] > 0 and msg.width > 0
+                and msg.height > 0):
+            return
+        camera = PinholeCamera(float(P[0, 0]), float(P[1, 1]), float(P[0, 2]), float(P[1, 2]),
+                               int(msg.width), int(msg.height))
+        if camera != self._camera:
+            self.get_logger().info(
+                f'acquisition camera from left/camera_info ({msg.header.frame_id}): {camera}; '
+                f'stereo baseline {self.get_parameter("stereo_baseline").value} m '
+                '(stereo_baseline)')
+        self._camera = camera
+        self._camera_frame = msg.header.frame_id
+
+    def _acquisition_camera(self) -> Optional[PinholeCamera]:
+        """Return the CameraInfo intrinsics if they describe the clouds' frame, else None."""
+        camera, frame = self._camera, getattr(self, '_camera_frame', '')
+        if camera is None or (frame and self._cloud_frame and frame != self._cloud_frame):
+            return None
+        return camera
+
     def _on_cloud(self, msg: PointCloud2) -> None:
         self._startup.setdefault('first cloud', time.monotonic())
+        self._cloud_frame = msg.header.frame_id
         with self._lock:
             self.counts['received'] += 1
             if self._worker.put(msg):

@@ -708,7 +708,9 @@ def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int) -> l
 
 
 def make_acquirer(method: str, max_candidates: int = 6,
-                  time_budget_s: float = 0.0) -> Acquirer:
+                  time_budget_s: float = 0.0,
+                  camera: Optional[Callable[[], Any]] = None,
+                  stereo_baseline: Optional[Callable[[], float]] = None) -> Acquirer:
     """
     Make the global acquisition of ``object_localizer.acquisition`` an Acquirer.
 
@@ -717,6 +719,13 @@ def make_acquirer(method: str, max_candidates: int = 6,
     :data:`Acquirer`: its best ``max_candidates`` hypotheses, refined or not, best first (the
     tracker refines and checks each in turn); ``'rough_fine'``: :func:`acquire_rough_fine`.
     The acquisition model is built on first use and kept on the tracking model.
+
+    :param camera: called at every acquisition: the intrinsics of the camera the clouds come
+        from (``verification.as_camera`` forms, e.g. from the CameraInfo of the cloud's
+        frame), or None (a virtual camera over the points).
+    :param stereo_baseline: called at every acquisition: the stereo baseline [m] (second camera
+        at +x of the cloud's optical frame) the visibility score reasons with; 0 or None: not
+        stereo.
     """
     if method == 'rough_fine':
         return acquire_rough_fine
@@ -731,8 +740,10 @@ def make_acquirer(method: str, max_candidates: int = 6,
             model.acquisition = acquisition.prepare_acquisition_model(model.mesh,
                                                                       check_model=model)
         P = np.asarray(points, dtype=float)
-        hyps = acquisition.acquire_object(model.acquisition, P[np.all(np.isfinite(P), axis=1)],
-                                          method=method, seed=seed,
+        scene = acquisition.prepare_acquisition_scene(
+            P[np.all(np.isfinite(P), axis=1)], camera=camera() if camera else None,
+            stereo_baseline=float(stereo_baseline()) if stereo_baseline else 0.0)
+        hyps = acquisition.acquire_object(model.acquisition, scene, method=method, seed=seed,
                                           time_budget_s=time_budget_s)
         return [h.pose for h in hyps[:max_candidates]]
     return acquire

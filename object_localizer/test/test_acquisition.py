@@ -138,6 +138,40 @@ def test_acquire_object_on_sampled_scene(meshes, symmetries, method):
     assert all(a.score >= b.score for a, b in zip(hyps, hyps[1:]) if b.refined)
 
 
+def test_tracker_acquirer_uses_the_camera_it_is_given(meshes, symmetries, monkeypatch):
+    """make_acquirer scores with the camera and baseline of its callables (the node's wiring)."""
+    from dataclasses import replace
+    from object_localizer import acquisition
+    from object_localizer.tracking import make_acquirer, prepare_tracking_model
+    rng = np.random.default_rng(5)
+    T = make_transform(rotation_about_axis([0.5, -0.3, 1.0], 2.6), [0.04, -0.02, 0.55])
+    cloud = _scene_of(meshes, 'link_arm', T, rng)
+    scenes = []
+    prepare = acquisition.prepare_acquisition_scene
+
+    def spy(*args, **kwargs):
+        scenes.append(prepare(*args, **kwargs))
+        return scenes[-1]
+    monkeypatch.setattr(acquisition, 'prepare_acquisition_scene', spy)
+    model = prepare_tracking_model(meshes['link_arm'])
+    camera = [None]
+    acquire = make_acquirer('ppf', time_budget_s=30.0, camera=lambda: camera[0],
+                            stereo_baseline=lambda: 0.1)
+    for cam in (None, CAMERA):
+        camera[0] = cam
+        poses = acquire(model, cloud, 1)
+        e_t, e_r = symmetric_pose_error(poses[0], T, symmetries['link_arm'])
+        assert e_t < 0.002 and e_r < np.radians(2.0), (cam, e_t, np.degrees(e_r))
+        observed = scenes[-1].observed()
+        assert observed.camera.baseline == 0.1 and observed.right is not None
+        if cam is not None:
+            # the camera's pixels (coarsened by 4 or more: this cloud is unorganised), not a
+            # virtual camera's
+            stride = CAMERA.fx / observed.camera.fx
+            assert stride >= 4.0
+            assert observed.camera == replace(CAMERA.scaled(stride), baseline=0.1)
+
+
 @pytest.fixture(scope='module')
 def stereo_frame():
     """Frame 20 of peg_in_hole through the demo's stereo settings: an organised cloud."""
