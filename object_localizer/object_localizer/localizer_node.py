@@ -73,6 +73,9 @@ class ObjectLocalizerNode(Node):
         'stereo_baseline': 'stereo_baseline',
         'static_recheck_period': 'static_recheck_period',
         'relock_window': 'relock_window',
+        'relock_shift': 'relock_shift',
+        'relock_turn': 'relock_turn',
+        'twin_max_speed': 'twin_max_speed',
         'track_length': 'max_history',
     }
 
@@ -140,9 +143,29 @@ class ObjectLocalizerNode(Node):
                                _float('re-verification period of static objects [s of cloud '
                                       'stamps]', 0.0, 3600.0))
         self.declare_parameter('relock_window', 1.0,
-                               _float('after a loss, for this long [s of cloud stamps] the '
-                                      'search first refines the last verified pose (0: off)',
+                               _float('after a loss, for this long [s of cloud stamps] the lost '
+                                      'track is re-acquired locally first (0: off)',
                                       0.0, 60.0))
+        self.declare_parameter('relock_shift', 0.012,
+                               _float('local re-acquisition also starts the ICP shifted by '
+                                      '+- this [m] along each model axis', 0.0, 0.1))
+        self.declare_parameter('relock_turn', 0.15,
+                               _float('... and turned by +- this [rad] about each model axis',
+                                      0.0, 1.0))
+        self.declare_parameter('twin_max_speed', 0.1,
+                               _float('identical parts: the radius within which a place may '
+                                      'carry the name of a part grows by this [m/s] with the '
+                                      'age of its last verified pose', 0.0, 10.0))
+        self.declare_parameter('search_cpu_share', 0.5,
+                               _float('while any object tracks, global searches run only while '
+                                      'their CPU stays below this share of the wall time (a '
+                                      'credit, at most search_cpu_burst): the tracked objects '
+                                      'keep the camera rate; the others are searched in later '
+                                      'clouds (status reason "global search deferred"); 1: '
+                                      'no cap', 0.05, 1.0))
+        self.declare_parameter('search_cpu_burst', 1.0,
+                               _float('largest search CPU credit [s] saved up while no search '
+                                      'runs', 0.1, 60.0))
         self.declare_parameter('publish_uncertain_naming', False, ParameterDescriptor(
             type=ParameterType.PARAMETER_BOOL,
             description='identical parts left ambiguous by stale known poses are named by the '
@@ -216,7 +239,10 @@ class ObjectLocalizerNode(Node):
         # static objects first: the others are checked against their verified poses
         self._order = sorted(names, key=lambda n: n not in static)
         self.counts = {'received': 0, 'processed': 0, 'dropped_stale': 0, 'rejected': 0,
-                       'published': 0, 'lost': 0, 'acquired': 0}
+                       'published': 0, 'lost': 0, 'acquired': 0, 'searches_deferred': 0}
+        # global-search CPU credit [s] and the wall time [s, monotonic] it was last updated
+        self._search_credit = self.get_parameter('search_cpu_burst').value
+        self._credit_time = time.monotonic()
         self._cpu: Dict[str, List[float]] = {n: [] for n in names}
         self._lock = threading.Lock()            # the pending cloud and the counts
         self._settings_lock = threading.Lock()   # tracker settings vs. the tracker's update
@@ -330,9 +356,13 @@ class ObjectLocalizerNode(Node):
         # from their stale known poses) are named together after the others
         in_group = {n for g in self._groups for n in g}
         deferred: Dict[str, TrackUpdate] = {}
+        allowed = self._search_allowed(bool(verified))
         for name in searching + [n for n in self._order if n in lost]:
             with self._settings_lock:
-                result = self.trackers[name].update(scene, stamp, verified)
+                result = self.trackers[name].update(scene, stamp, verified, search=allowed)
+            self._search_credit -= result.cpu_seconds
+            if 'global search deferred' in result.reason:
+                self.counts['searches_deferred'] += 1
             if name in lost:     # lost in this cloud: report the loss with the search
                 first = lost[name]
                 result.lost = True
@@ -360,6 +390,24 @@ class ObjectLocalizerNode(Node):
                     deferred[group[k]] = result
         for name in [n for n in self._order if n in deferred]:
             self._publish(name, deferred[name], msg, scene, verified)
+
+    def _search_allowed(self, tracking: bool) -> bool:
+        """
+        Return whether global searches may run in this cloud (``search_cpu_share``).
+
+        The credit grows by the share of the wall time since the last cloud (at most
+        ``search_cpu_burst``) and every search or re-acquisition spends its CPU: with objects
+        tracked in this cloud, the searches run only while the credit is positive, so they
+        take at most that share of the CPU over time and the tracked objects keep the camera
+        rate. With nothing tracked there is no rate to keep: they always run. Decided once per
+        cloud, for all lost objects together (identical parts are named together).
+        """
+        now = time.monotonic()
+        share = self.get_parameter('search_cpu_share').value
+        self._search_credit = min(self._search_credit + share * (now - self._credit_time),
+                                  self.get_parameter('search_cpu_burst').value)
+        self._credit_time = now
+        return not tracking or share >= 1.0 or self._search_credit > 0.0
 
     def _publish(self, name: str, result: TrackUpdate, msg: PointCloud2, scene: SceneCloud,
                  verified: list) -> None:

@@ -29,9 +29,12 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from object_localizer.tracking import mean_displacement, ObjectTracker, penetration, \
-    symmetric_distance, TrackingModel, TrackUpdate
+    symmetric_distance, TrackerSettings, TrackingModel, TrackUpdate
 
-__all__ = ['name_identical_parts', 'identical_groups']
+#: (pose 4x4 model -> sensor, age [s] or None for a hint of unknown age)
+KnownPose = Tuple[np.ndarray, Optional[float]]
+
+__all__ = ['name_identical_parts', 'identical_groups', 'may_name', 'known_radius']
 
 
 def identical_groups(trackers: Dict[str, ObjectTracker]) -> List[List[str]]:
@@ -163,3 +166,55 @@ def name_identical_parts(group: Sequence[ObjectTracker], stamp_ns: int,
                                    f'mm from its known pose); {how}', acquired=True)
         tracker.naming_uncertain = tracker.naming_uncertain or not certain
     return out
+
+
+def known_radius(age: Optional[float], settings: TrackerSettings) -> float:
+    """
+    Return how far [m, mean displacement] a part may have moved from a pose known ``age`` ago.
+
+    ``twin_reacquire_radius + twin_max_speed x age`` (a hint, age None: the radius alone).
+    """
+    grown = 0.0 if age is None else settings.twin_max_speed * max(float(age), 0.0)
+    return settings.twin_reacquire_radius + grown
+
+
+def may_name(model: TrackingModel, pose: np.ndarray, own: Sequence[KnownPose],
+             open_twins: Sequence[Tuple[TrackingModel, Sequence[KnownPose]]],
+             settings: TrackerSettings) -> Tuple[bool, str]:
+    """
+    Decide whether a verified place ``pose`` of ``model`` may carry this part's name.
+
+    Identical parts cannot be told apart by geometry: only where each was last seen (and where
+    its motion would have taken it) names a place. Distances are mean displacements of the
+    model's points, each divided by the radius the part may have moved since that pose was
+    verified (:func:`known_radius`; older knowledge says less). The place is this part's when
+    its nearest own expected pose (last verified pose or prediction) is within that radius
+    (normalised distance <= 1) and less than half the normalised distance of every twin not
+    verified in this cloud (a twin verified in this cloud already took its place: the
+    penetration check keeps this part out of it). Otherwise nothing is named: a swapped name
+    is worse than no pose.
+
+    :param own: this part's expected poses with their ages (``ObjectTracker.expected_poses``).
+    :param open_twins: (model, expected poses) of every identical part not verified in this
+        cloud; a twin whose origin differs is compared at the same place (box centres shifted).
+    :return: (may name, why not).
+    """
+    if not own:
+        return False, 'no known pose of this part'
+    own_d = [(mean_displacement(model, pose, T), known_radius(a, settings)) for T, a in own]
+    d_own, r_own = min(own_d, key=lambda dr: dr[0] / dr[1])
+    if d_own > r_own:
+        return False, (f'{1e3 * d_own:.0f} mm from its known pose or prediction, beyond the '
+                       f'{1e3 * r_own:.0f} mm it may have moved')
+    for twin, expected in open_twins:
+        X = np.eye(4) if twin is model else _frame_change(model, twin)
+        if X is None:
+            return False, f'{twin.name} has the same shape in an unmatched frame'
+        if not expected:
+            continue       # a twin with no known pose: it names nothing
+        d_twin = min(mean_displacement(model, pose, T @ X) / known_radius(a, settings)
+                     for T, a in expected)
+        if not d_own / r_own < 0.5 * d_twin:
+            return False, (f'not clearly nearer its own known pose than that of {twin.name} '
+                           f'({d_own / r_own:.2f} vs {d_twin:.2f} of their radii)')
+    return True, ''

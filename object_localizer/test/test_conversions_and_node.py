@@ -169,3 +169,66 @@ def test_tracked_objects_are_published_before_a_lost_ones_search(ros_node):
         assert node.counts['lost'] == 1 and node.counts['published'] == 5
     finally:
         node.destroy_node()
+
+
+def test_global_searches_are_deferred_beyond_their_cpu_share(ros_node):
+    """
+    While an object tracks, a lost one's global searches take at most their CPU share.
+
+    link_base and link_arm verified from hints and tracked; then link_base is gone for three
+    clouds. The first search runs (saved-up credit 0.1 s), it spends 0.3 s; with a share of 5 %
+    of the wall time the next clouds defer the search (status reason says so, counted) while
+    link_arm is still published every cloud. The tracked pose stays right (ground truth).
+    """
+    from rclpy.parameter import Parameter
+    from object_localizer.evaluation import add_s
+    from object_localizer.localizer_node import ObjectLocalizerNode
+    from stereo_manip_tools.transforms import quaternion_from_matrix
+
+    meshes = {n: load_obj(find_model(n)) for n in ('link_base', 'link_arm')}
+    truth = {'link_base': make_transform(rotation_about_axis([1, 0, 0], 2.2), [-0.06, 0, 0.6]),
+             'link_arm': make_transform(rotation_about_axis([1, 0.2, 0], 2.0),
+                                        [0.08, 0.02, 0.62])}
+    hints = []
+    for n in ('link_base', 'link_arm'):
+        hints += list(truth[n][:3, 3]) + list(quaternion_from_matrix(truth[n][:3, :3]))
+    node = ObjectLocalizerNode(context=ros_node.context, parameter_overrides=[
+        Parameter('models', value=['link_base', 'link_arm']),
+        Parameter('initial_poses', value=[float(v) for v in hints]),
+        Parameter('search_cpu_share', value=0.05), Parameter('search_cpu_burst', value=0.1)])
+    searches = []
+
+    def search(model, points, seed):      # a search that finds nothing in 0.3 s of CPU
+        import time
+        searches.append(seed)
+        t0 = time.process_time()
+        while time.process_time() - t0 < 0.3:
+            pass
+        return []
+    node.trackers['link_base'].acquirer = search
+    outcomes = []
+    original = node._publish
+
+    def publish(name, result, *a):
+        outcomes.append((name, result.pose, result.reason))
+        original(name, result, *a)
+    node._publish = publish
+    try:
+        for k in range(5):
+            poses = truth if k < 2 else {'link_arm': truth['link_arm']}
+            cloud = np.vstack([sample_visible_surface(meshes[n], T, 8000, seed=10 * k + i)
+                               for i, (n, T) in enumerate(poses.items())])
+            header = Header(frame_id='stereo_left_optical', stamp=ns_to_stamp(k * 100_000_000))
+            outcomes.clear()
+            node._process(xyz_to_pointcloud2(cloud, header))
+            got = {n: (p, r) for n, p, r in outcomes}
+            pose = got['link_arm'][0]
+            assert pose is not None and add_s(pose, truth['link_arm'],
+                                              node.trackers['link_arm'].model.points) < 0.001
+            if k >= 3:
+                assert got['link_base'][0] is None
+                assert 'global search deferred' in got['link_base'][1], got['link_base'][1]
+        assert len(searches) == 1
+        assert node.counts['searches_deferred'] == 2
+    finally:
+        node.destroy_node()
