@@ -25,11 +25,13 @@ from __future__ import annotations
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+from stereo_manip_tools.transforms import rotation_log
 
 from .contact_relation import (
     ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts, penetration_depth,
     relative_pose, VERTEX)
 from .correction import correct_pose, CorrectionResult
+from .nonlinear_correction import apply_screw, constraint_rows
 from .optimal_correction import constraint_directions, constraint_matrix
 from .polyhedron import Polyhedron
 from .recognition import (
@@ -58,6 +60,141 @@ def correct_recognised(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarr
                        **kwargs: Any) -> CorrectionResult:
     """
     Correct one frame with a recognised relation, with fallbacks.
+
+    Every path (the chosen relation, a nested one under the guard, a fallback relation, a
+    push-out) ends with one check against the free directions of the relation the result
+    enforces (:func:`_honour_free_directions`): a change along them above
+    :data:`FREE_TOLERANCE` is undone, or the correction refused (the observation passed
+    through) or, when the observation penetrates and no pose without that change is found,
+    flagged (``guarded``) with the size in its status; never silent.
+
+    Parameters as :func:`_correct_recognised_paths`.
+    """
+    r = _correct_recognised_paths(moving, fixed, T_moving, T_fixed, chosen, frame, guard,
+                                  recognition_margin, guard_limits, **kwargs)
+    return _honour_free_directions(moving, fixed, T_moving, T_fixed, frame, r, **kwargs)
+
+
+def _honour_free_directions(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
+                            T_fixed: np.ndarray, frame: FrameCandidates,
+                            r: CorrectionResult, **kwargs: Any) -> CorrectionResult:
+    """
+    Undo (or refuse, or flag) a change along the free directions of ``r``'s own relation.
+
+    The free translations of ``r.pairs`` as the recognition sees them
+    (:func:`_recognised_free_translation`, at the observed pose, fixed frame). A change of the
+    moving origin along them above :data:`FREE_TOLERANCE` is removed when the pose keeps the
+    relation's contacts (within the residual tolerance) and stays out of penetration there;
+    else a non-penetrating observation is passed through (``guarded``, status says why);
+    else (the observation penetrates, the correction is the only one removing it) the
+    correction is kept and flagged ``guarded`` with the size of the change in its status.
+    """
+    if not r.corrected or not r.pairs:
+        return r
+    T_o, T_c = relative_pose(T_moving, T_fixed), relative_pose(r.T_moving, T_fixed)
+    F = _recognised_free_translation(moving, fixed, T_o, Hypothesis(
+        frozenset(frame.groups), tuple(r.pairs), 0.0, 0, 0.0), frame)
+    leak = F @ (T_c[:3, 3] - T_o[:3, 3])
+    if not len(F) or np.abs(leak).max() <= FREE_TOLERANCE:
+        return r
+    size = np.abs(leak).max() * 1e3
+    check = kwargs.get('check_penetration', True)
+    spacing = kwargs.get('penetration_spacing', 0.005)
+    tol = max(kwargs.get('residual_tolerance', 1e-9), 1e-6)
+    T_b = T_c.copy()
+    T_b[:3, 3] -= F.T @ leak
+    d = evaluate_contacts(moving, fixed, T_b, list(r.pairs)).distances
+    if np.abs(d).max(initial=0.0) <= tol and (not check or penetration_depth(
+            moving, fixed, T_fixed @ T_b, T_fixed, spacing) <= tol):
+        A, g = constraint_matrix(moving, fixed, T_b, list(r.pairs))
+        r.T_moving = T_fixed @ T_b
+        r.translation_change = T_b[:3, 3] - T_o[:3, 3]
+        r.geometry = g
+        r.directions = constraint_directions(A, max(moving.size, 1e-6))
+        r.max_residual = float(np.abs(g.distances).max(initial=0.0))
+        r.status += (f' (free directions restored: {size:.3g} mm along a direction the '
+                     'relation leaves free)')
+        return r
+    # the orientation of the correction tilts some of the relation's normals (e.g. an
+    # edge-edge pair at a slot's entrance) so that they acquire a component along the free
+    # direction; solve the relation again with the free components held at the observed ones
+    try:
+        T_s = _solve_keeping_free(moving, fixed, T_b, T_o, list(r.pairs), F, tol)
+    except (ValueError, np.linalg.LinAlgError):     # e.g. parallel edges of an edge pair
+        T_s = None
+    if T_s is not None and (not check or penetration_depth(
+            moving, fixed, T_fixed @ T_s, T_fixed, spacing) <= tol):
+        A, g = constraint_matrix(moving, fixed, T_s, list(r.pairs))
+        r.T_moving = T_fixed @ T_s
+        r.translation_change = T_s[:3, 3] - T_o[:3, 3]
+        r.rotation_change = rotation_log(T_s[:3, :3] @ T_o[:3, :3].T)
+        r.geometry = g
+        r.directions = constraint_directions(A, max(moving.size, 1e-6))
+        r.max_residual = float(np.abs(g.distances).max(initial=0.0))
+        r.status += (f' (re-solved with the free directions held: it moved {size:.3g} mm '
+                     'along a direction the relation leaves free)')
+        return r
+    pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check else 0.0
+    if pen <= tol:
+        r2 = CorrectionResult(
+            T_moving=np.array(T_moving, dtype=float), penetration_before=pen,
+            penetration_after=pen, guarded=True,
+            status=f'pose passed through ({r.status} moved it {size:.3g} mm along a '
+                   'direction the relation leaves free)')
+        r2.relation_source = r.relation_source
+        return r2
+    r.guarded = True
+    r.status += (f' (flagged: moved {size:.3g} mm along a direction the relation leaves '
+                 'free; the observation penetrates and no correction without it was found)')
+    return r
+
+
+def _solve_keeping_free(moving: Polyhedron, fixed: Polyhedron, T_start: np.ndarray,
+                        T_obs: np.ndarray, pairs: List[ContactPair], F: np.ndarray,
+                        tol: float, iterations: int = 20) -> Optional[np.ndarray]:
+    """
+    Satisfy ``pairs`` with the moving origin's components along ``F`` held at the observed.
+
+    Gauss-Newton from ``T_start`` (moving in fixed frame, 4x4) on the screw ``[w, v]``
+    (:func:`~contact_correction.nonlinear_correction.apply_screw`, rotation scaled by the
+    moving object's size): the contact distances' rows of Eq. 2 and, as exact rows, the
+    change of the origin along the free translations ``F`` (k, 3; fixed frame) that brings
+    it back to ``T_obs``'s (``f . (w x t + v) = f . (t_obs - t)``); minimum-norm steps.
+
+    :returns: the pose (4x4) or None when the residual stays above ``tol`` [m].
+    """
+    L = max(moving.size / 4.0, 1e-6)
+    scale = np.array([1.0 / L] * 3 + [1.0] * 3)
+    T = np.array(T_start, dtype=float)
+    for _ in range(iterations):
+        g = evaluate_contacts(moving, fixed, T, pairs)
+        t = T[:3, 3]
+        leak = F @ (t - T_obs[:3, 3])
+        if np.abs(g.distances).max(initial=0.0) <= 1e-3 * tol \
+                and np.abs(leak).max(initial=0.0) <= 1e-3 * FREE_TOLERANCE:
+            break
+        J = np.vstack([constraint_rows(g.points, g.normals),
+                       np.hstack([np.cross(t, F), F])]) * scale
+        step, *_ = np.linalg.lstsq(J, -np.concatenate([g.distances, leak]), rcond=1e-9)
+        step *= scale
+        if np.linalg.norm(step[:3]) > 0.3:
+            return None
+        T = apply_screw(T, step[:3], step[3:])
+    g = evaluate_contacts(moving, fixed, T, pairs)
+    if np.abs(g.distances).max(initial=0.0) > tol \
+            or np.abs(F @ (T[:3, 3] - T_obs[:3, 3])).max(initial=0.0) > FREE_TOLERANCE:
+        return None
+    return T
+
+
+def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
+                              T_fixed: np.ndarray, chosen: Hypothesis, frame: FrameCandidates,
+                              guard: Optional[np.ndarray] = None,
+                              recognition_margin: Optional[float] = None,
+                              guard_limits: Optional[Tuple[float, float]] = None,
+                              **kwargs: Any) -> CorrectionResult:
+    """
+    Correct one frame with a recognised relation, with fallbacks (every path).
 
     Correct one frame with a recognised relation, falling back to the frame's next best
     relations and finally to pushing a penetrating observation out.
