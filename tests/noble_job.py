@@ -135,25 +135,47 @@ def _start_early(folder: Path) -> None:
     Start the job in the background, its output and exit code in ``folder``.
 
     Nothing starts when the venv is unavailable: the suite's test then skips with the reason.
+    The job stops when the process that asked for it (scripts/make_test.sh) is gone.
     """
     if unavailable_reason() is not None:
         return
     wrapper = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), 'run',
-                                str(folder)], cwd=ROOT, start_new_session=True,
-                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL)
+                                str(folder), str(os.getppid())], cwd=ROOT,
+                               start_new_session=True, stdin=subprocess.DEVNULL,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     (folder / 'pid').write_text(str(wrapper.pid))
 
 
-def _run_early(folder: Path) -> int:
-    """Run the job now, its output in ``folder``/output.txt, then write ``folder``/rc."""
+def _alive(pid: int) -> bool:
+    """Tell whether process ``pid`` runs (a zombie does not)."""
+    try:
+        stat = Path(f'/proc/{pid}/stat').read_text()
+    except OSError:
+        return False
+    return stat.rsplit(')', 1)[-1].split()[0] != 'Z'
+
+
+def _run_early(folder: Path, owner: Optional[int] = None) -> int:
+    """
+    Run the job now, its output in ``folder``/output.txt, then write ``folder``/rc.
+
+    No time limit here: the suite's wait has it (:meth:`EarlyJob.result`), as for a job it
+    starts itself, so a slow bootstrap does not eat into the job's time. The job is killed if
+    process ``owner`` ends first (``make test`` interrupted before the suite collected it).
+    """
     with open(folder / 'output.txt', 'w') as out:
-        try:
-            code = subprocess.run(command(), cwd=ROOT, env=clean_env(), stdout=out,
-                                  stderr=subprocess.STDOUT, timeout=TIMEOUT_S).returncode
-        except subprocess.TimeoutExpired:
-            out.write(f'\n[job killed after {TIMEOUT_S:.0f} s]\n')
-            code = -signal.SIGKILL
+        job = subprocess.Popen(command(), cwd=ROOT, env=clean_env(), stdout=out,
+                               stderr=subprocess.STDOUT)
+        while True:
+            try:
+                code = job.wait(2.0)
+                break
+            except subprocess.TimeoutExpired:
+                if owner is not None and not _alive(owner):
+                    job.kill()
+                    out.write('\n[job killed: make test ended]\n')
+                    code = job.wait()
+                    break
     (folder / 'rc.tmp').write_text(str(code))
     (folder / 'rc.tmp').rename(folder / 'rc')
     return code
@@ -174,12 +196,12 @@ def run() -> Tuple[int, str]:
 
 
 if __name__ == '__main__':
-    # python tests/noble_job.py start|run|cancel DIR (scripts/make_test.sh)
+    # python tests/noble_job.py start|cancel DIR (scripts/make_test.sh); run DIR OWNER_PID
     action, where = sys.argv[1], Path(sys.argv[2])
     if action == 'start':
         _start_early(where)
     elif action == 'run':
-        sys.exit(_run_early(where))
+        sys.exit(_run_early(where, int(sys.argv[3])))
     elif action == 'cancel':
         EarlyJob(where).cancel()
     else:

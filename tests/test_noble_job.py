@@ -50,3 +50,15 @@ def test_job_that_does_not_finish_is_killed_with_its_process_group(tmp_path):
     finally:
         if child.poll() is None:
             child.kill()
+
+
+def test_job_stops_when_make_test_is_gone(tmp_path, monkeypatch):
+    monkeypatch.setattr(noble_job, 'command', lambda: [
+        sys.executable, '-c', 'import time; time.sleep(60)'])
+    owner = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(1.0)'])
+    t0 = time.monotonic()
+    code = noble_job._run_early(tmp_path, owner.pid)
+    owner.wait()
+    assert code == -signal.SIGKILL and time.monotonic() - t0 < 20.0
+    assert 'make test ended' in (tmp_path / 'output.txt').read_text()
+    assert (tmp_path / 'rc').read_text() == str(-signal.SIGKILL)
