@@ -56,7 +56,8 @@ def pytest_collection_modifyitems(session, config, items):
     Overlap the Noble-pinned job with this venv's pure-core tests.
 
     Both are single-threaded runs of the same tests: on two cores they take the time of one.
-    The job starts now; the pure-core tests run first, the job's test next (it waits for the
+    The job starts now (``make test`` started it before the bootstrap already: it is attached to,
+    tests/noble_job.py); the pure-core tests run first, the job's test next (it waits for the
     job), the rclpy and process tiers last, alone. Only in a run that collects the job's test
     with the rest (``make test``); STEREO_MANIP_NOBLE_BACKGROUND=0 turns it off.
     """
@@ -68,7 +69,8 @@ def pytest_collection_modifyitems(session, config, items):
     import noble_job
     if noble_job.unavailable_reason() is not None:
         return
-    noble_job.background = noble_job.BackgroundJob()
+    # the job make test started before the bootstrap (scripts/make_test.sh), else one now
+    noble_job.background = noble_job.attach() or noble_job.BackgroundJob()
     config.add_cleanup(noble_job.background.cancel)
     core = [i for i in items if i is not noble[0] and _pure_core(i)]
     rest = [i for i in items if i is not noble[0] and not _pure_core(i)]

@@ -1,8 +1,11 @@
 """
 The Noble-pinned job's command, environment and background run (tests/test_noble_pinned.py).
 
-The job is single-threaded and needs no ROS, so a full `make test` starts it in the background
-as soon as the suite is collected (the root conftest.py) and runs this venv's pure-core tests
+The job is single-threaded and needs neither ROS nor the colcon build (the pure-core tests run
+from the source folders), so `make test` (scripts/make_test.sh) starts it in the background
+before the bootstrap: ``python tests/noble_job.py start DIR`` (output and exit code in DIR,
+handed to the suite as ``$STEREO_MANIP_NOBLE_JOB_DIR``). A suite run without such a job starts
+one as soon as it is collected (the root conftest.py). Either way this venv's pure-core tests run
 meanwhile: two single-threaded runs on two cores. The rclpy and process tiers, whose timing
 matters more, run after ``test_pure_core_tests_pass_with_noble_versions`` has collected the
 job's result.
@@ -10,9 +13,12 @@ job's result.
 
 import os
 from pathlib import Path
+import signal
 import subprocess
+import sys
 import tempfile
-from typing import Dict, List, Optional, Tuple
+import time
+from typing import Dict, List, Optional, Tuple, Union
 
 ROOT = Path(__file__).resolve().parents[1]
 VENV = ROOT / '.venv-noble'
@@ -21,6 +27,8 @@ PACKAGES = ['stereo_manip_tools', 'stereo_depth', 'object_localizer', 'contact_c
             'joint_estimator', 'ip_modeler', 'stereo_manip_bringup']
 #: the job's time limit [s]
 TIMEOUT_S = 1500.0
+#: environment variable naming the folder of a job started before the suite (scripts/make_test.sh)
+EARLY_DIR_ENV = 'STEREO_MANIP_NOBLE_JOB_DIR'
 
 
 def unavailable_reason() -> Optional[str]:
@@ -76,14 +84,125 @@ class BackgroundJob:
             self.process.wait()
 
 
-#: the job started by the root conftest.py for this session, if any
-background: Optional[BackgroundJob] = None
+class EarlyJob:
+    """
+    The job ``python tests/noble_job.py start DIR`` started before the suite.
+
+    DIR holds ``pid`` (the job's wrapper, leader of its own process group), ``output.txt``
+    and, once it has finished, ``rc`` (its exit code).
+    """
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+
+    def _done(self) -> bool:
+        return (self.folder / 'rc').exists()
+
+    def result(self, timeout: float = TIMEOUT_S) -> Tuple[int, str]:
+        """Wait for the job; return its exit code and output (killed after ``timeout`` s)."""
+        end = time.monotonic() + timeout
+        while not self._done() and time.monotonic() < end:
+            time.sleep(0.5)
+        if not self._done():
+            self.cancel()
+            return -signal.SIGKILL, self._output() + f'\n[job killed after {timeout:.0f} s]'
+        return int((self.folder / 'rc').read_text()), self._output()
+
+    def _output(self) -> str:
+        out = self.folder / 'output.txt'
+        return out.read_text(errors='replace') if out.exists() else ''
+
+    def cancel(self) -> None:
+        """Stop the job if it still runs (the session ended without collecting it)."""
+        if self._done():
+            return
+        try:
+            os.killpg(int((self.folder / 'pid').read_text()), signal.SIGKILL)
+        except (OSError, ValueError):
+            pass
+
+
+def attach() -> Optional[EarlyJob]:
+    """Return the job started before this suite (``$STEREO_MANIP_NOBLE_JOB_DIR``), if any."""
+    folder = os.environ.get(EARLY_DIR_ENV)
+    if folder and (Path(folder) / 'pid').is_file():
+        return EarlyJob(Path(folder))
+    return None
+
+
+def _start_early(folder: Path) -> None:
+    """
+    Start the job in the background, its output and exit code in ``folder``.
+
+    Nothing starts when the venv is unavailable: the suite's test then skips with the reason.
+    The job stops when the process that asked for it (scripts/make_test.sh) is gone.
+    """
+    if unavailable_reason() is not None:
+        return
+    wrapper = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), 'run',
+                                str(folder), str(os.getppid())], cwd=ROOT,
+                               start_new_session=True, stdin=subprocess.DEVNULL,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    (folder / 'pid').write_text(str(wrapper.pid))
+
+
+def _alive(pid: int) -> bool:
+    """Tell whether process ``pid`` runs (a zombie does not)."""
+    try:
+        stat = Path(f'/proc/{pid}/stat').read_text()
+    except OSError:
+        return False
+    return stat.rsplit(')', 1)[-1].split()[0] != 'Z'
+
+
+def _run_early(folder: Path, owner: Optional[int] = None) -> int:
+    """
+    Run the job now, its output in ``folder``/output.txt, then write ``folder``/rc.
+
+    No time limit here: the suite's wait has it (:meth:`EarlyJob.result`), as for a job it
+    starts itself, so a slow bootstrap does not eat into the job's time. The job is killed if
+    process ``owner`` ends first (``make test`` interrupted before the suite collected it).
+    """
+    with open(folder / 'output.txt', 'w') as out:
+        job = subprocess.Popen(command(), cwd=ROOT, env=clean_env(), stdout=out,
+                               stderr=subprocess.STDOUT)
+        while True:
+            try:
+                code = job.wait(2.0)
+                break
+            except subprocess.TimeoutExpired:
+                if owner is not None and not _alive(owner):
+                    job.kill()
+                    out.write('\n[job killed: make test ended]\n')
+                    code = job.wait()
+                    break
+    (folder / 'rc.tmp').write_text(str(code))
+    (folder / 'rc.tmp').rename(folder / 'rc')
+    return code
+
+
+#: the job of this session (started before it, or by the root conftest.py), if any
+background: Optional[Union[BackgroundJob, EarlyJob]] = None
 
 
 def run() -> Tuple[int, str]:
     """Return the job's exit code and output: the background run's, else a run now."""
-    if background is not None:
-        return background.result()
+    job = background or attach()
+    if job is not None:
+        return job.result()
     result = subprocess.run(command(), cwd=ROOT, env=clean_env(), capture_output=True,
                             text=True, timeout=TIMEOUT_S)
     return result.returncode, result.stdout + result.stderr
+
+
+if __name__ == '__main__':
+    # python tests/noble_job.py start|cancel DIR (scripts/make_test.sh); run DIR OWNER_PID
+    action, where = sys.argv[1], Path(sys.argv[2])
+    if action == 'start':
+        _start_early(where)
+    elif action == 'run':
+        sys.exit(_run_early(where, int(sys.argv[3])))
+    elif action == 'cancel':
+        EarlyJob(where).cancel()
+    else:
+        sys.exit(f'unknown action {action!r}')
