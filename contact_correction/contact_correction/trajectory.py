@@ -106,15 +106,9 @@ def _honour_free_directions(moving: Polyhedron, fixed: Polyhedron, T_moving: np.
     d = evaluate_contacts(moving, fixed, T_b, list(r.pairs)).distances
     if np.abs(d).max(initial=0.0) <= tol and (not check or penetration_depth(
             moving, fixed, T_fixed @ T_b, T_fixed, spacing) <= tol):
-        A, g = constraint_matrix(moving, fixed, T_b, list(r.pairs))
-        r.T_moving = T_fixed @ T_b
-        r.translation_change = T_b[:3, 3] - T_o[:3, 3]
-        r.geometry = g
-        r.directions = constraint_directions(A, max(moving.size, 1e-6))
-        r.max_residual = float(np.abs(g.distances).max(initial=0.0))
-        r.status += (f' (free directions restored: {size:.3g} mm along a direction the '
-                     'relation leaves free)')
-        return r
+        return _adopt_relative_pose(r, moving, fixed, T_fixed, T_o, T_b, (
+            f' (free directions restored: {size:.3g} mm along a direction the relation leaves '
+            'free)'))
     # the orientation of the correction tilts some of the relation's normals (e.g. an
     # edge-edge pair at a slot's entrance) so that they acquire a component along the free
     # direction; solve the relation again with the free components held at the observed ones
@@ -124,16 +118,10 @@ def _honour_free_directions(moving: Polyhedron, fixed: Polyhedron, T_moving: np.
         T_s = None
     if T_s is not None and (not check or penetration_depth(
             moving, fixed, T_fixed @ T_s, T_fixed, spacing) <= tol):
-        A, g = constraint_matrix(moving, fixed, T_s, list(r.pairs))
-        r.T_moving = T_fixed @ T_s
-        r.translation_change = T_s[:3, 3] - T_o[:3, 3]
         r.rotation_change = rotation_log(T_s[:3, :3] @ T_o[:3, :3].T)
-        r.geometry = g
-        r.directions = constraint_directions(A, max(moving.size, 1e-6))
-        r.max_residual = float(np.abs(g.distances).max(initial=0.0))
-        r.status += (f' (re-solved with the free directions held: it moved {size:.3g} mm '
-                     'along a direction the relation leaves free)')
-        return r
+        return _adopt_relative_pose(r, moving, fixed, T_fixed, T_o, T_s, (
+            f' (re-solved with the free directions held: it moved {size:.3g} mm along a '
+            'direction the relation leaves free)'))
     pen = penetration_depth(moving, fixed, T_moving, T_fixed, spacing) if check else 0.0
     if pen <= tol:
         r2 = CorrectionResult(
@@ -146,6 +134,26 @@ def _honour_free_directions(moving: Polyhedron, fixed: Polyhedron, T_moving: np.
     r.guarded = True
     r.status += (f' (flagged: moved {size:.3g} mm along a direction the relation leaves '
                  'free; the observation penetrates and no correction without it was found)')
+    return r
+
+
+def _adopt_relative_pose(r: CorrectionResult, moving: Polyhedron, fixed: Polyhedron,
+                         T_fixed: np.ndarray, T_o: np.ndarray, T_rel: np.ndarray,
+                         note: str) -> CorrectionResult:
+    """
+    Make ``r`` the correction to the relative pose ``T_rel`` (4x4, moving in the fixed frame).
+
+    Sets the world pose, the translation change from the observed relative pose ``T_o``, the
+    relation's geometry, constrained directions and residual at ``T_rel``, and appends
+    ``note`` to the status. The rotation change is the caller's (unchanged by a pure shift).
+    """
+    A, g = constraint_matrix(moving, fixed, T_rel, list(r.pairs))
+    r.T_moving = T_fixed @ T_rel
+    r.translation_change = T_rel[:3, 3] - T_o[:3, 3]
+    r.geometry = g
+    r.directions = constraint_directions(A, max(moving.size, 1e-6))
+    r.max_residual = float(np.abs(g.distances).max(initial=0.0))
+    r.status += note
     return r
 
 
