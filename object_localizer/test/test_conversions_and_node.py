@@ -104,15 +104,12 @@ def test_node_builds_segment_and_path_only_for_subscribers(ros_node):
         node.destroy_node()
 
 
-def test_tracked_objects_are_published_before_a_lost_ones_search(ros_node):
+def _two_bricks_node(ros_node, **parameters):
     """
-    A lost track's global search waits for the objects that still track.
+    Return meshes, true poses and an in-process node for the identical bricks.
 
-    In-process node with link_base and link_arm (identical bricks), both verified from hints on
-    the first cloud and tracked on the second. On the third, link_base has jumped 15 cm: its
-    track is lost, and its search runs only after link_arm's pose is published (a search takes
-    seconds; it must not delay a tracked pose), with link_arm verified in this cloud among the
-    search's `others`.
+    link_base and link_arm at fixed poses 0.6 m in front of the camera; the node gets their
+    true poses as hints (``initial_poses``) and ``parameters`` as overrides.
     """
     from rclpy.parameter import Parameter
     from object_localizer.localizer_node import ObjectLocalizerNode
@@ -127,7 +124,22 @@ def test_tracked_objects_are_published_before_a_lost_ones_search(ros_node):
         hints += list(truth[n][:3, 3]) + list(quaternion_from_matrix(truth[n][:3, :3]))
     node = ObjectLocalizerNode(context=ros_node.context, parameter_overrides=[
         Parameter('models', value=['link_base', 'link_arm']),
-        Parameter('initial_poses', value=[float(v) for v in hints])])
+        Parameter('initial_poses', value=[float(v) for v in hints])] + [
+        Parameter(k, value=v) for k, v in parameters.items()])
+    return meshes, truth, node
+
+
+def test_tracked_objects_are_published_before_a_lost_ones_search(ros_node):
+    """
+    A lost track's global search waits for the objects that still track.
+
+    In-process node with link_base and link_arm (identical bricks), both verified from hints on
+    the first cloud and tracked on the second. On the third, link_base has jumped 15 cm: its
+    track is lost, and its search runs only after link_arm's pose is published (a search takes
+    seconds; it must not delay a tracked pose), with link_arm verified in this cloud among the
+    search's `others`.
+    """
+    meshes, truth, node = _two_bricks_node(ros_node)
     events = []
     searched_with = []
     for name, tracker in node.trackers.items():
@@ -180,22 +192,10 @@ def test_global_searches_are_deferred_beyond_their_cpu_share(ros_node):
     of the wall time the next clouds defer the search (status reason says so, counted) while
     link_arm is still published every cloud. The tracked pose stays right (ground truth).
     """
-    from rclpy.parameter import Parameter
     from object_localizer.evaluation import add_s
-    from object_localizer.localizer_node import ObjectLocalizerNode
-    from stereo_manip_tools.transforms import quaternion_from_matrix
 
-    meshes = {n: load_obj(find_model(n)) for n in ('link_base', 'link_arm')}
-    truth = {'link_base': make_transform(rotation_about_axis([1, 0, 0], 2.2), [-0.06, 0, 0.6]),
-             'link_arm': make_transform(rotation_about_axis([1, 0.2, 0], 2.0),
-                                        [0.08, 0.02, 0.62])}
-    hints = []
-    for n in ('link_base', 'link_arm'):
-        hints += list(truth[n][:3, 3]) + list(quaternion_from_matrix(truth[n][:3, :3]))
-    node = ObjectLocalizerNode(context=ros_node.context, parameter_overrides=[
-        Parameter('models', value=['link_base', 'link_arm']),
-        Parameter('initial_poses', value=[float(v) for v in hints]),
-        Parameter('search_cpu_share', value=0.05), Parameter('search_cpu_burst', value=0.1)])
+    meshes, truth, node = _two_bricks_node(ros_node, search_cpu_share=0.05,
+                                           search_cpu_burst=0.1)
     searches = []
 
     def search(model, points, seed):      # a search that finds nothing in 0.3 s of CPU
