@@ -11,7 +11,8 @@ from typing import Optional
 
 import numpy as np
 from object_localizer.tracking import PoseQuality, TrackState
-from sensor_msgs.msg import PointCloud2
+from object_localizer.verification import PinholeCamera
+from sensor_msgs.msg import CameraInfo, PointCloud2
 from std_msgs.msg import Header
 from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import read_pointcloud2
@@ -37,6 +38,26 @@ def cloud_xyz(msg: PointCloud2, max_points: Optional[int] = None, voxel_size: fl
     """
     return read_pointcloud2(msg, keep_rows=True, max_points=max_points, voxel_size=voxel_size,
                             dtype=np.float32).points
+
+
+def camera_from_camera_info(msg: CameraInfo) -> PinholeCamera:
+    """
+    Return the rectified pinhole intrinsics (projection ``P``) of one camera's ``CameraInfo``.
+
+    fx, fy, cx, cy [px] from ``P`` (the rectified image the cloud was computed from) and the
+    image size [px].
+
+    :raises ValueError: ``P`` not finite or its focal lengths not positive (P not set), or the
+        image size is zero.
+    """
+    P = np.asarray(msg.p, dtype=float).reshape(3, 4)
+    if not (np.all(np.isfinite(P)) and P[0, 0] > 0 and P[1, 1] > 0):
+        raise ValueError(f'CameraInfo projection P has focal lengths fx={P[0, 0]}, '
+                         f'fy={P[1, 1]} (P not set?)')
+    if not (msg.width > 0 and msg.height > 0):
+        raise ValueError(f'CameraInfo image size is {msg.width}x{msg.height}')
+    return PinholeCamera(float(P[0, 0]), float(P[1, 1]), float(P[0, 2]), float(P[1, 2]),
+                         int(msg.width), int(msg.height))
 
 
 def track_status(header: Header, name: str, state: TrackState, quality: PoseQuality | None,

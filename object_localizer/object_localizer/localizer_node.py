@@ -26,7 +26,7 @@ from nav_msgs.msg import Path
 import numpy as np
 from object_localizer import lean_open3d  # noqa: F401 (before Open3D is imported)
 from object_localizer.acquisition import prepare_acquisition_model
-from object_localizer.conversions import cloud_xyz, track_status
+from object_localizer.conversions import camera_from_camera_info, cloud_xyz, track_status
 from object_localizer.naming import identical_groups, name_identical_parts
 from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
     same_shape, SceneCloud, TrackerSettings, TrackState, TrackUpdate
@@ -36,6 +36,7 @@ from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, Paramete
 import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, PointCloud2
 from stereo_manip_msgs.msg import TrackStatus
 from stereo_manip_tools.conversions import matrices_to_path, matrix_to_pose, stamp_to_ns, \
@@ -202,6 +203,7 @@ class ObjectLocalizerNode(Node):
         # left CameraInfo of the cloud's frame (a virtual camera until one arrives), baseline
         # from stereo_baseline (the check's)
         self._camera: Optional[PinholeCamera] = None
+        self._camera_frame = ''      # frame of the CameraInfo that gave _camera
         self._cloud_frame = ''
         acquirer = make_acquirer(self.get_parameter('acquisition_method').value,
                                  camera=self._acquisition_camera,
@@ -253,7 +255,8 @@ class ObjectLocalizerNode(Node):
             self.tf.follow(pub, name)
         self.create_subscription(PointCloud2, 'points2', self._on_cloud,
                                  input_qos_profile(self.get_parameter('input_qos').value))
-        self.create_subscription(CameraInfo, 'left/camera_info', self._on_camera_info, 1)
+        self.create_subscription(CameraInfo, 'left/camera_info', self._on_camera_info,
+                                 qos_profile_sensor_data)
         self.create_timer(10.0, self._log_stats)
         self.get_logger().info(
             f'localising {", ".join(names)} in points2'
@@ -284,12 +287,12 @@ class ObjectLocalizerNode(Node):
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         """Keep the left camera's rectified intrinsics (P) for the acquisition's score."""
-        P = np.asarray(msg.p, dtype=float).reshape(3, 4)
-        if not (np.all(np.isfinite(P)) and P[0, 0] > 0 and P[1, 1] > 0 and msg.width > 0
-                and msg.height > 0):
+        try:
+            camera = camera_from_camera_info(msg)
+        except ValueError as exc:     # the last good camera (or the virtual one) stays
+            self.get_logger().warning(f'left/camera_info ignored: {exc}',
+                                      throttle_duration_sec=10.0)
             return
-        camera = PinholeCamera(float(P[0, 0]), float(P[1, 1]), float(P[0, 2]), float(P[1, 2]),
-                               int(msg.width), int(msg.height))
         if camera != self._camera:
             self.get_logger().info(
                 f'acquisition camera from left/camera_info ({msg.header.frame_id}): {camera}; '
@@ -300,7 +303,7 @@ class ObjectLocalizerNode(Node):
 
     def _acquisition_camera(self) -> Optional[PinholeCamera]:
         """Return the CameraInfo intrinsics if they describe the clouds' frame, else None."""
-        camera, frame = self._camera, getattr(self, '_camera_frame', '')
+        camera, frame = self._camera, self._camera_frame
         if camera is None or (frame and self._cloud_frame and frame != self._cloud_frame):
             return None
         return camera

@@ -232,3 +232,19 @@ def test_global_searches_are_deferred_beyond_their_cpu_share(ros_node):
         assert node.counts['searches_deferred'] == 2
     finally:
         node.destroy_node()
+
+
+def test_camera_from_camera_info_reads_the_rectified_projection():
+    """The acquisition camera is P's intrinsics and the image size; an unset P is refused."""
+    from object_localizer.conversions import camera_from_camera_info
+    from object_localizer.verification import PinholeCamera
+    from sensor_msgs.msg import CameraInfo
+
+    msg = CameraInfo(width=640, height=480)
+    msg.p = [525.0, 0.0, 319.5, -52.5, 0.0, 526.0, 239.5, 0.0, 0.0, 0.0, 1.0, 0.0]
+    assert camera_from_camera_info(msg) == PinholeCamera(525.0, 526.0, 319.5, 239.5, 640, 480)
+    with pytest.raises(ValueError, match='P not set'):
+        camera_from_camera_info(CameraInfo(width=640, height=480))
+    msg.width = 0
+    with pytest.raises(ValueError, match='image size'):
+        camera_from_camera_info(msg)
