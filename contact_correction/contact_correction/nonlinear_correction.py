@@ -79,8 +79,15 @@ try:  # the compiled iteration (same steps as the Python loop below, which stays
     @numba.njit(cache=True, fastmath=False, error_model='numpy')
     def _rot_about(w: np.ndarray, angle: float) -> np.ndarray:  # pragma: no cover
         """Rotate by angle about w: rotation_about_axis (Rodrigues, axis normalised here)."""
-        n = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-        a0, a1, a2 = w[0] / n, w[1] / n, w[2] / n
+        # scaled first: the squares of a step's components near 1e-160 underflow to 0 (the
+        # caller's np.linalg.norm does not), and w / 0 made the iteration NaN (hypothesis
+        # found it: cube_on_table observed 5e-153 rad from the contact)
+        m = max(abs(w[0]), abs(w[1]), abs(w[2]))
+        if m == 0.0:
+            return np.eye(3)
+        s0, s1, s2 = w[0] / m, w[1] / m, w[2] / m
+        n = np.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+        a0, a1, a2 = s0 / n, s1 / n, s2 / n
         K = np.array([[0.0, -a2, a1], [a2, 0.0, -a0], [-a1, a0, 0.0]])
         return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
 
