@@ -77,6 +77,7 @@ class ObjectLocalizerNode(Node):
         'relock_shift': 'relock_shift',
         'relock_turn': 'relock_turn',
         'twin_max_speed': 'twin_max_speed',
+        'motion_memory': 'motion_memory',
         'track_length': 'max_history',
     }
 
@@ -157,6 +158,10 @@ class ObjectLocalizerNode(Node):
                                _float('identical parts: the radius within which a place may '
                                       'carry the name of a part grows by this [m/s] with the '
                                       'age of its last verified pose', 0.0, 10.0))
+        self.declare_parameter('motion_memory', 2.0,
+                               _float('a track re-acquired within this long [s of cloud stamps] '
+                                      'of its last verified pose keeps its velocity from before '
+                                      'the loss (0: starts without one)', 0.0, 60.0))
         self.declare_parameter('search_cpu_share', 0.5,
                                _float('while any object tracks, global searches run only while '
                                       'their CPU stays below this share of the wall time (a '

@@ -4,7 +4,8 @@
 Per cloud and object (:meth:`ObjectTracker.update`):
 
 1. **Prediction.** Constant velocity: the object's centre keeps its last linear velocity and the
-   object its last angular velocity (both from the last two accepted poses and their stamps).
+   object its last angular velocity (both from the last two accepted poses and their stamps;
+   a track re-acquired after a loss keeps the velocity it had before it, ``motion_memory``).
 2. **Tracking.** Point-to-plane ICP with a Tukey M-estimator from the prediction. The scene points
    near the predicted object (a cone crop, then a sphere crop, voxel down-sampled) are the
    source; the model samples expected visible at the prediction, with their exact normals, are
@@ -59,9 +60,9 @@ from stereo_manip_tools.mesh_io import PolygonMesh
 from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
 __all__ = ['TrackState', 'TrackerSettings', 'TrackingModel', 'PoseQuality', 'TrackUpdate',
-           'SceneCloud', 'prepare_tracking_model', 'predict_constant_velocity', 'track_icp',
-           'check_pose', 'ObjectTracker', 'Acquirer', 'make_acquirer', 'acquire_rough_fine',
-           'same_shape', 'symmetric_distance']
+           'SceneCloud', 'prepare_tracking_model', 'predict_constant_velocity', 'carried_motion',
+           'track_icp', 'check_pose', 'ObjectTracker', 'Acquirer', 'make_acquirer',
+           'acquire_rough_fine', 'same_shape', 'symmetric_distance']
 
 
 class TrackState(enum.IntEnum):
@@ -163,6 +164,13 @@ class TrackerSettings:
         its own last known pose or motion prediction (age [s]: since that pose was verified)
         and, measured in those radii, less than half as far from it as from every unverified
         twin's (its own radius from its own age): the older a known pose, the less it says.
+    :ivar motion_memory: a track re-acquired within this long [s, cloud stamps] of its last
+        verified pose keeps the velocity it had before the loss (:func:`carried_motion`); 0:
+        a re-acquired track starts without a velocity. On a slow graph (clouds farther apart
+        than ``prediction_horizon``, e.g. a loaded machine) a moving object is only followed
+        through the extrapolated start, so a track re-acquired without its velocity was lost
+        again in the next cloud (measured: peg graph under 2 busy loops, a loss / search /
+        re-acquire / loss cycle at 1.6 Hz).
     :ivar static: the object does not move: after a verified pose it is held and re-verified
         every ``static_recheck_period`` [s] (cloud stamps).
     :ivar max_history: accepted poses kept in :attr:`ObjectTracker.history` (bounded).
@@ -199,6 +207,7 @@ class TrackerSettings:
     relock_shift: float = 0.012
     relock_turn: float = 0.15
     twin_max_speed: float = 0.1
+    motion_memory: float = 2.0
     static: bool = False
     static_recheck_period: float = 1.0
     max_history: int = 300
@@ -357,6 +366,38 @@ def predict_constant_velocity(model: TrackingModel, history: Tuple[Tuple[int, np
     T[:3, :3] = R
     T[:3, 3] = c - R @ model.centre
     return T
+
+
+def carried_motion(model: TrackingModel, motion: Tuple[Tuple[int, np.ndarray], ...],
+                   pose: np.ndarray, stamp_ns: int) -> Optional[Tuple[int, np.ndarray]]:
+    """
+    Return a virtual earlier ``(stamp_ns, pose)`` giving ``pose`` the velocity of ``motion``.
+
+    ``motion``: the last two verified ``(stamp_ns, 4x4 pose)`` of a track before it was lost;
+    ``pose``: the re-acquired pose at ``stamp_ns``. The returned pose lies one interval of
+    ``motion`` before ``stamp_ns``, with the model centre moved back by the centre's
+    displacement over that interval and the object turned back by its rotation (sensor frame),
+    so that :func:`predict_constant_velocity` from (it, ``pose``) moves on as the track did.
+    Both are invariant under the model's symmetries (the centre lies on every symmetry axis):
+    a re-acquired pose that is a symmetric twin of the lost one's continuation inherits the
+    right motion, where a velocity between the pose before the loss and the re-acquired pose
+    would carry the symmetry's turn. None when ``motion`` holds no interval.
+    """
+    if len(motion) < 2:
+        return None
+    (t0, T0), (t1, T1) = motion[-2], motion[-1]
+    if t1 <= t0:
+        return None
+    w = rotation_log(T1[:3, :3] @ T0[:3, :3].T)
+    angle = float(np.linalg.norm(w))
+    R = np.asarray(pose, dtype=float)[:3, :3]
+    R_prev = rotation_about_axis(w, -angle) @ R if angle > 1e-12 else R.copy()
+    shift = (T1[:3, :3] - T0[:3, :3]) @ model.centre + T1[:3, 3] - T0[:3, 3]
+    c_prev = R @ model.centre + pose[:3, 3] - shift
+    T = np.eye(4)
+    T[:3, :3] = R_prev
+    T[:3, 3] = c_prev - R_prev @ model.centre
+    return int(stamp_ns) - (int(t1) - int(t0)), T
 
 
 class SceneCloud:
@@ -1136,6 +1177,11 @@ class ObjectTracker:
     def _start(self, stamp_ns: int, pose: np.ndarray, q: PoseQuality, reason: str,
                acquired: bool = False) -> TrackUpdate:
         self.history.clear()
+        if (acquired and self._reference_ns is not None and 0 < stamp_ns - self._reference_ns
+                <= self.settings.motion_memory * 1e9):
+            earlier = carried_motion(self.model, self._motion, pose, stamp_ns)
+            if earlier is not None:     # re-acquired after a loss: the velocity before it
+                self.history.append(earlier)
         self._accept(stamp_ns, pose)
         self.state = TrackState.STATIC if self.settings.static else TrackState.TRACKING
         self._last_check_ns = stamp_ns

@@ -543,3 +543,46 @@ def test_a_part_that_fits_in_two_overlapping_ways_is_not_named():
         trackers['link_arm'].places = [(arm_place, PoseQuality(quality=0.8))]
         named = name_identical_parts(list(trackers.values()), 0)
         assert (named == {}) == (len(places) == 2), named
+
+
+def test_a_reacquired_track_keeps_its_velocity_on_a_slow_graph(arm):
+    """
+    Clouds 0.6 s apart (a loaded machine), the object moving 30 mm and 6 deg between them.
+
+    Beyond ``prediction_horizon`` the object is followed only through the extrapolated start.
+    It is hidden for one cloud (lost), then re-acquired by the search as a symmetric twin of
+    its pose (the brick turned 180 deg about its long axis, which the search cannot tell
+    apart). With the velocity from before the loss carried (symmetry-invariant) the next cloud
+    tracks, within 1 mm; with ``motion_memory`` 0 (no velocity) it is lost again.
+    """
+    mesh, model = arm
+    c = model.centre
+    flip = make_transform(rotation_about_axis([1.0, 0.0, 0.0], np.pi), c) @ \
+        make_transform(np.eye(3), -c)                   # a symmetry of the brick
+
+    def pose_at(t):     # 50 mm/s along x, 10 deg/s about the optical axis
+        R = rotation_about_axis([0.0, 0.0, 1.0], np.deg2rad(10.0) * t) @ moving_pose(0)[:3, :3]
+        return make_transform(R, [0.05 * t - 0.04, 0.0, 0.8])
+
+    outcomes = {}
+    for memory in (2.0, 0.0):
+        rng = np.random.default_rng(21)
+        candidates = []
+        tracker = ObjectTracker(model, TrackerSettings(relock_window=0.0, motion_memory=memory),
+                                acquirer=lambda m, p, seed: list(candidates))
+        tracker.reset(pose_at(0.0))
+        for t in (0.0, 0.1, 0.7):       # the prediction, then the extrapolated start
+            res = tracker.update(observe(mesh, pose_at(t), rng), int(t * 1e9))
+            assert res.pose is not None, (t, res.reason)
+            assert add_s(res.pose, pose_at(t), model.points) < 0.001
+        lost = tracker.update(wall_behind(pose_at(1.3), rng), int(1.3e9))
+        assert lost.pose is None and lost.state == TrackState.LOST
+        candidates[:] = [pose_at(1.9) @ flip]
+        back = tracker.update(observe(mesh, pose_at(1.9), rng), int(1.9e9))
+        assert back.pose is not None and back.acquired, back.reason
+        candidates.clear()
+        outcomes[memory] = tracker.update(observe(mesh, pose_at(2.5), rng), int(2.5e9))
+    kept = outcomes[2.0]
+    assert kept.pose is not None and kept.state == TrackState.TRACKING, kept.reason
+    assert add_s(kept.pose, pose_at(2.5), model.points) < 0.001
+    assert outcomes[0.0].pose is None, outcomes[0.0].reason
