@@ -36,6 +36,7 @@ import os
 import time
 
 from joint_estimator.common import JointType, split_track
+from joint_estimator.evaluation import axis_angle_deg, line_distance_over_segment
 from joint_estimator.revolute import (
     fit_axis_directions, fit_axis_directions_iterative, make_fit)
 from joint_estimator.selection import estimate_joint
@@ -52,21 +53,6 @@ ROT_RANGES = (np.deg2rad(30.0), np.deg2rad(90.0))
 TRANS_RANGES = (0.05, 0.20)
 OUTLIERS = (0.0, 0.2)
 GOAL_CELL = (0.001, np.deg2rad(1.0), 100, 1, 0.0)
-
-
-def angle_deg(a, b):
-    return float(np.degrees(np.arccos(np.clip(abs(a @ b), 0.0, 1.0))))
-
-
-def point_line_distance(x, c, u):
-    d = x - c
-    return float(np.linalg.norm(d - u * (d @ u)))
-
-
-def line_distance_over_segment(c_true, l_true, foot, c_est, l_est, half=0.1):
-    """Max distance from the estimated line to the true one along ``foot +- half * l_true``."""
-    del c_true
-    return max(point_line_distance(foot + s * l_true, c_est, l_est) for s in (-half, half))
 
 
 def track_errors(T, truth, mask_in):
@@ -108,8 +94,8 @@ def run_revolute_cell(sp, sr, n, r, fo, seeds):
             fit = res.best
             rej = fit.outlier_indices
             row.update({
-                tag + 'axis_err_a_deg': angle_deg(fit.axis_in_a, g.axis_in_a),
-                tag + 'axis_err_b_deg': angle_deg(fit.axis_in_b, g.axis_in_b),
+                tag + 'axis_err_a_deg': axis_angle_deg(fit.axis_in_a, g.axis_in_a),
+                tag + 'axis_err_b_deg': axis_angle_deg(fit.axis_in_b, g.axis_in_b),
                 tag + 'line_dist_b_mm': 1000 * line_distance_over_segment(
                     g.point_in_b, g.axis_in_b, foot_b, fit.point_in_b, fit.axis_in_b),
                 tag + 'line_dist_a_mm': 1000 * line_distance_over_segment(
@@ -135,7 +121,7 @@ def run_revolute_cell(sp, sr, n, r, fo, seeds):
             t_it = time.perf_counter() - t0
             row.update({'eq17_closed_ms': 1000 * t_cf, 'eq17_iter_ms': 1000 * t_it,
                         'eq17_iter_nfev': nfev,
-                        'eq17_disagree_deg': max(angle_deg(a, ai), angle_deg(b, bi))})
+                        'eq17_disagree_deg': max(axis_angle_deg(a, ai), axis_angle_deg(b, bi))})
         rows.append(row)
     keys = sorted({k for rw in rows for k in rw})
     summary = {k: float(np.mean([rw[k] for rw in rows if k in rw])) for k in keys}

@@ -48,6 +48,7 @@ import time
 
 import cv2
 from joint_estimator.common import JointType, minimal_rotations_onto, rotations_about_axis
+from joint_estimator.evaluation import axis_angle_deg, line_distance_over_segment
 from joint_estimator.marker_noise import refine_revolute_corners, refine_revolute_marker
 from joint_estimator.revolute import RevoluteModel
 from joint_estimator.selection import estimate_joint
@@ -165,20 +166,9 @@ def make_track(rng: np.random.Generator) -> dict:
             'distance_m': float(np.linalg.norm(hinge))}
 
 
-def angle_deg(a, b):
-    return float(np.degrees(np.arccos(np.clip(abs(a @ b), 0.0, 1.0))))
-
-
-def point_line_distance(x, c, u):
-    d = x - c
-    return float(np.linalg.norm(d - u * (d @ u)))
-
-
-def line_distance_mm(c_true, l_true, anchor, c_est, l_est, half=0.1):
-    """Max distance [mm] from the estimated line to the true one along ``foot +- half``."""
-    foot = c_true + l_true * ((anchor - c_true) @ l_true)
-    return 1000.0 * max(point_line_distance(foot + s * l_true, c_est, l_est)
-                        for s in (-half, half))
+def line_distance_mm(c_true, l_true, anchor, c_est, l_est):
+    """Max distance [mm] from the estimated line to the true one, 0.1 m about the anchor."""
+    return 1000.0 * line_distance_over_segment(c_true, l_true, anchor, c_est, l_est)
 
 
 def score(track, est, seconds):
@@ -190,8 +180,8 @@ def score(track, est, seconds):
            'rejected': int(b.outlier_indices.size), 'frames': int(b.inliers.size)}
     if b.joint_type in (JointType.REVOLUTE, JointType.CYLINDRICAL):
         row.update({
-            'axis_err_a_deg': angle_deg(b.axis_in_a, track['axis_a']),
-            'axis_err_b_deg': angle_deg(b.axis_in_b, track['axis_b']),
+            'axis_err_a_deg': axis_angle_deg(b.axis_in_a, track['axis_a']),
+            'axis_err_b_deg': axis_angle_deg(b.axis_in_b, track['axis_b']),
             'line_dist_b_mm': line_distance_mm(track['point_b'], track['axis_b'], anchor_b,
                                                b.point_in_b, b.axis_in_b),
             'line_dist_a_mm': line_distance_mm(track['point_a'], track['axis_a'], anchor_a,

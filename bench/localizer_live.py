@@ -64,7 +64,7 @@ def _args(params, remap=None):
     return out
 
 
-def run(scene, mode, rate, seconds, frames, log):
+def run(scene, mode, rate, seconds, frames, log, localizer_params=None):
     from geometry_msgs.msg import PoseStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import Empty
@@ -79,7 +79,8 @@ def run(scene, mode, rate, seconds, frames, log):
                      'input_qos': 'reliable'})),
              ('object_localizer', 'object_localizer_node',
               _args({'models': names, **({'static_objects': static} if static else {}),
-                     **({'initial_poses': _hints(scene, names)} if hinted else {})}))]
+                     **({'initial_poses': _hints(scene, names)} if hinted else {}),
+                     **(localizer_params or {})}))]
     node = make_node(f'bench_live_{scene}')
     qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
     poses = {n: [] for n in names}
@@ -197,6 +198,10 @@ def main() -> None:
     parser.add_argument('--frames', type=int, default=40, help='triggered frames')
     parser.add_argument('--scenes', default='peg_in_hole,revolute_pair')
     parser.add_argument('--modes', default='free_running,triggered')
+    parser.add_argument('--param', action='append', default=[], metavar='NAME=VALUE',
+                        help='a localizer parameter (repeatable; an A/B of one setting)')
+    parser.add_argument('--out', default='localizer_live',
+                        help='result name (bench/results/<out>.json)')
     parser.add_argument('--rescore', action='store_true',
                         help='recompute the goals from the runs in the existing JSON')
     args = parser.parse_args()
@@ -211,7 +216,8 @@ def main() -> None:
     for scene in args.scenes.split(','):
         for mode in args.modes.split(','):
             print(f'{scene} {mode} ...', flush=True)
-            runs.append(run(scene, mode, args.rate, args.seconds, args.frames, print))
+            runs.append(run(scene, mode, args.rate, args.seconds, args.frames, print,
+                            dict(p.split('=', 1) for p in args.param)))
     summarise(runs, load_before, vars(args))
 
 
@@ -234,7 +240,8 @@ def summarise(runs, load_before, args):
              sum(o['published'] == 0 for o in objs)),
         goal('nodes_died', 0, '==', sum(len(r['dead_nodes']) for r in runs)),
     ]
-    write_report('localizer_live', goals, runs=runs, losses=losses, unrecovered_at_end=unrecovered,
+    write_report(args.get('out', 'localizer_live'), goals, runs=runs, losses=losses,
+                 unrecovered_at_end=unrecovered,
                  recovery_cpu_s={'median': float(np.median(recov)) if recov else None,
                                  'p95': float(np.percentile(recov, 95)) if recov else None,
                                  'max': float(max(recov)) if recov else None, 'n': len(recov)},

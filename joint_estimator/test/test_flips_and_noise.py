@@ -3,21 +3,13 @@
 import cv2
 from joint_estimator.ambiguity import marker_twins, relative_candidates, two_link_candidates
 from joint_estimator.common import compose_track, JointType, rotations_about_axis
+from joint_estimator.evaluation import axis_angle_deg, point_line_distance
 from joint_estimator.robust import line_of_sight_ratio
 from joint_estimator.selection import estimate_joint, unwrap_angles
 from joint_estimator.synthetic import add_noise, random_joint_motion
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
-
-def _angle_deg(a, b):
-    return float(np.degrees(np.arccos(np.clip(abs(a @ b), 0.0, 1.0))))
-
-
-def _line_distance(x, c, u):
-    d = x - c
-    return float(np.linalg.norm(d - u * (d @ u)))
 
 
 def _door_in_camera(n, rng, motion_deg=100.0, distance=1.0):
@@ -102,8 +94,8 @@ def test_flipped_poses_are_repaired_not_dropped(flip_fraction):
     assert np.all(rep[big] | ~b.inliers[big]) and not np.any(rep & ~flipped)
     assert rep[big].mean() > 0.95
     assert b.outlier_indices.size <= 0.05 * n
-    assert _angle_deg(b.axis_in_b, axis_b) < 0.5
-    assert _line_distance(b.point_in_b, hinge, axis_b) < 0.003
+    assert axis_angle_deg(b.axis_in_b, axis_b) < 0.5
+    assert point_line_distance(b.point_in_b, hinge, axis_b) < 0.003
     assert 'flipped poses repaired' in est.status and not b.warnings
     # without the repair the flipped frames are lost (rejected)
     plain = estimate_joint(data, flip_repair=False)
@@ -184,13 +176,13 @@ def test_axis_point_nearest_the_data_and_calibrated_uncertainty():
         # on the axis, at the foot of the positions' centre
         c = noisy[b.inliers, :3, 3].mean(axis=0)
         assert abs((c - b.point_in_b) @ b.axis_in_b) < 1e-9
-        assert _line_distance(b.point_in_b, g.point_in_b, g.axis_in_b) < 0.01
+        assert point_line_distance(b.point_in_b, g.point_in_b, g.axis_in_b) < 0.01
         R, p = b.corrected[:, :3, :3], b.corrected[:, :3, 3]
         np.testing.assert_allclose(np.einsum('nij,j->ni', R, b.point_in_a) + p,
                                    np.tile(b.point_in_b, (60, 1)), atol=1e-9)
         mn = b.extra['minimum_norm_point_in_b']
-        assert _line_distance(mn, b.point_in_b, b.axis_in_b) < 1e-9
-        ratios.append(np.deg2rad(_angle_deg(b.axis_in_b, g.axis_in_b)) / b.axis_angle_std_in_b)
+        assert point_line_distance(mn, b.point_in_b, b.axis_in_b) < 1e-9
+        ratios.append(np.deg2rad(axis_angle_deg(b.axis_in_b, g.axis_in_b)) / b.axis_angle_std_in_b)
         assert b.axis_point_std > 0
     # the axis error (a 2-d tangent error: Rayleigh distributed, median 1.18 std) is of the
     # size the reported std says

@@ -3,6 +3,7 @@
 import cv2
 from joint_estimator.common import compose_track, JointType, rotation_vectors
 from joint_estimator.common import minimal_rotations_onto, rotations_about_axis
+from joint_estimator.evaluation import axis_angle_deg, line_distance_over_segment
 from joint_estimator.marker_noise import (
     estimate_marker_side, marker_corners, marker_information, refine_revolute_corners,
     refine_revolute_marker)
@@ -17,17 +18,8 @@ F_PX = 1400.0
 K = np.array([[F_PX, 0.0, 960.0], [0.0, F_PX, 540.0], [0.0, 0.0, 1.0]])
 
 
-def _angle_deg(a, b):
-    return float(np.degrees(np.arccos(np.clip(abs(a @ b), 0.0, 1.0))))
-
-
-def _line_distance_mm(c_true, l_true, anchor, c, u, half=0.1):
-    foot = c_true + l_true * ((anchor - c_true) @ l_true)
-    out = 0.0
-    for s in (-half, half):
-        d = foot + s * l_true - c
-        out = max(out, float(np.linalg.norm(d - u * (d @ u))))
-    return 1000.0 * out
+def _line_distance_mm(c_true, l_true, anchor, c, u):
+    return 1000.0 * line_distance_over_segment(c_true, l_true, anchor, c, u)
 
 
 def _ippe_door(seed, n=300, side=0.07, sigma_px=0.8, distance=1.2):
@@ -66,7 +58,7 @@ def _ippe_door(seed, n=300, side=0.07, sigma_px=0.8, distance=1.2):
 
 def _errors(track, axis_a, axis_b, point_a, point_b, poses):
     anchor_b = poses[:, :3, 3].mean(axis=0)
-    ang = max(_angle_deg(axis_a, track['axis_a']), _angle_deg(axis_b, track['axis_b']))
+    ang = max(axis_angle_deg(axis_a, track['axis_a']), axis_angle_deg(axis_b, track['axis_b']))
     line = max(_line_distance_mm(track['point_b'], track['axis_b'], anchor_b, point_b, axis_b),
                _line_distance_mm(track['point_a'], track['axis_a'], np.zeros(3), point_a,
                                  axis_a))
@@ -176,8 +168,8 @@ def test_flipped_marker_tracks_reach_the_corner_bound_without_rejecting_frames()
         assert b.outlier_indices.size <= 0.02 * D.shape[0], (seed, b.outlier_indices.size)
         ang, _ = _errors(tr, b.axis_in_a, b.axis_in_b, b.point_in_a, b.point_in_b, D)
         assert ang < 0.5, (seed, ang)
-        err = _line_distance_mm(tr['point_b'], tr['axis_b'], D[:, :3, 3].mean(axis=0),
-                                b.point_in_b, b.axis_in_b, half=0.0) / 1000.0
+        err = line_distance_over_segment(tr['point_b'], tr['axis_b'], D[:, :3, 3].mean(axis=0),
+                                         b.point_in_b, b.axis_in_b, half_length=0.0)
         ratios.append(err / _corner_bound_point_std(tr))
     assert np.sqrt(np.mean(np.square(ratios))) < 1.57, ratios
 
@@ -196,7 +188,7 @@ def test_known_side_and_the_flipped_track():
     res = refine_revolute_marker(b.model, tr['unflipped'][:, :3, :3],
                                  tr['unflipped'][:, :3, 3], tr['side'])
     m = res['model']
-    assert _angle_deg(m.axis_in_b, tr['axis_b']) < 0.5
+    assert axis_angle_deg(m.axis_in_b, tr['axis_b']) < 0.5
     assert res['information'].shape == (T.shape[0], 6, 6)
 
 
@@ -226,8 +218,8 @@ def test_small_track_with_outliers_is_not_taken_over_by_twins():
         g = random_joint_motion(JointType.REVOLUTE, n, rng, rotation_range=np.deg2rad(30.0))
         noisy, out = add_outliers(add_noise(g.poses, sp, sr, rng), 0.2, rng)
         b = estimate_joint(noisy, joint_type=JointType.REVOLUTE, rng=rng).best
-        worst = max(worst, _angle_deg(b.axis_in_a, g.axis_in_a),
-                    _angle_deg(b.axis_in_b, g.axis_in_b))
+        worst = max(worst, axis_angle_deg(b.axis_in_a, g.axis_in_a),
+                    axis_angle_deg(b.axis_in_b, g.axis_in_b))
         Gt = g.poses[~out, :3, :3]
         for Rx, acc in ((b.corrected[~out, :3, :3], rot_fit), (noisy[~out, :3, :3], rot_raw)):
             acc.append(np.linalg.norm(rotation_vectors(Rx @ np.transpose(Gt, (0, 2, 1))),
