@@ -163,7 +163,8 @@ class ObjectLocalizerNode(Node):
                                       'of its last verified pose keeps its velocity from before '
                                       'the loss (0: starts without one)', 0.0, 60.0))
         self.declare_parameter('search_cpu_share', 0.5,
-                               _float('while any object tracks, global searches run only while '
+                               _float('while a moving (not static) object tracks, global '
+                                      'searches run only while '
                                       'their CPU stays below this share of the wall time (a '
                                       'credit, at most search_cpu_burst): the tracked objects '
                                       'keep the camera rate; the others are searched in later '
@@ -364,7 +365,12 @@ class ObjectLocalizerNode(Node):
         # from their stale known poses) are named together after the others
         in_group = {n for g in self._groups for n in g}
         deferred: Dict[str, TrackUpdate] = {}
-        allowed = self._search_allowed(bool(verified))
+        # only a moving object tracked in this cloud has a camera rate to keep: a static one is
+        # held (re-checked once per static_recheck_period), so it does not defer the searches
+        # (after a restart of the peg graph, the hole block found first made the peg's searches
+        # wait for the credit)
+        allowed = self._search_allowed(any(
+            self.trackers[n].state == TrackState.TRACKING for n in tracking if n not in lost))
         for name in searching + [n for n in self._order if n in lost]:
             with self._settings_lock:
                 result = self.trackers[name].update(scene, stamp, verified, search=allowed)
@@ -402,6 +408,8 @@ class ObjectLocalizerNode(Node):
     def _search_allowed(self, tracking: bool) -> bool:
         """
         Return whether global searches may run in this cloud (``search_cpu_share``).
+
+        ``tracking``: a moving (not static) object was tracked in this cloud.
 
         The credit grows by the share of the wall time since the last cloud (at most
         ``search_cpu_burst``) and every search or re-acquisition spends its CPU: with objects
