@@ -48,8 +48,9 @@ def startup_line(proc, timeout=5.0):
             if 'start-up [s' in ln][0]
 
 
-def first_pose(node, poses, truths, t0, points, timeout=60.0, proc=None, stats=None):
-    n0 = len(poses)
+def first_pose(node, poses, truths, t0, points, timeout=60.0, proc=None, stats=None,
+               statuses=()):
+    n0, s0 = len(poses), len(statuses)
     if not spin_until(node, lambda: len(poses) > n0, timeout):
         return float('nan'), float('nan')
     elapsed = time.monotonic() - t0
@@ -57,6 +58,13 @@ def first_pose(node, poses, truths, t0, points, timeout=60.0, proc=None, stats=N
         stats['localizer_cpu_s_at_first_pose'] = process_cpu_seconds(proc.process.pid)
         stats['load_1min'] = os.getloadavg()[0]
         stats['startup'] = startup_line(proc)
+        # why the clouds before the first pose gave none (the status reasons, counted)
+        before: dict = {}
+        for m in statuses[s0:]:
+            if m.state == m.TRACKING:
+                break
+            before[m.reason[:160]] = before.get(m.reason[:160], 0) + 1
+        stats['statuses_before_first_pose'] = before
     got = poses[n0]
     spin_until(node, lambda: any(t.header.stamp == got.header.stamp for t in truths), 2.0)
     match = [t for t in truths if t.header.stamp == got.header.stamp]
@@ -67,6 +75,7 @@ def first_pose(node, poses, truths, t0, points, timeout=60.0, proc=None, stats=N
 
 def main() -> None:
     from geometry_msgs.msg import PoseStamped
+    from stereo_manip_msgs.msg import TrackStatus
     parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     parser.add_argument('--restarts', type=int, default=3)
     args = parser.parse_args()
@@ -75,6 +84,8 @@ def main() -> None:
     poses, truths = [], []
     node.create_subscription(PoseStamped, '/objects/peg/pose', poses.append, 10)
     node.create_subscription(PoseStamped, '/objects/peg/pose_truth', truths.append, 50)
+    statuses = []
+    node.create_subscription(TrackStatus, '/objects/peg/status', statuses.append, 50)
     runs = []
     load_before = os.getloadavg()
     stream = subprocess.Popen([sys.executable, str(PEER)], stdout=subprocess.DEVNULL,
@@ -86,7 +97,8 @@ def main() -> None:
             proc = ExecutableProcess('object_localizer', 'object_localizer_node',
                                      ros_args=['-p', 'models:=[peg]'])
             stats = {}
-            elapsed, err = first_pose(node, poses, truths, t0, points, proc=proc, stats=stats)
+            elapsed, err = first_pose(node, poses, truths, t0, points, proc=proc, stats=stats,
+                                      statuses=statuses)
             runs.append({'case': 'producers_first' if k == 0 else 'kill_9_restart',
                          'seconds_to_first_pose': elapsed, 'add_s_m': err,
                          'producer_alive': stream.poll() is None, **stats})
@@ -112,7 +124,8 @@ def main() -> None:
             assert spin_until(node, lambda: len(truths) > n_truth, 180), 'producer silent'
             t0 = time.monotonic()
             stats = {}
-            elapsed, err = first_pose(node, poses, truths, t0, points, proc=proc, stats=stats)
+            elapsed, err = first_pose(node, poses, truths, t0, points, proc=proc, stats=stats,
+                                      statuses=statuses)
             runs.append({'case': 'consumers_first', 'seconds_to_first_pose': elapsed,
                          'add_s_m': err, 'localizer_alive': proc.running(), **stats})
             print(runs[-1], flush=True)
