@@ -190,7 +190,10 @@ def node_parameters() -> Dict[str, Any]:
     from stereo_manip_bringup.demo import LIVE_PARAMETERS, STAGES
     for spec in STAGES[SCENE]().nodes:
         if spec.executable == 'stereo_depth_node':
-            return {**spec.parameters, **LIVE_PARAMETERS.get('stereo_depth_node', {})}
+            # lock-step feeding publishes the next pair as soon as the last cloud is back (stamps
+            # ~60 ms apart): the graph's max_rate would skip it; every pair is measured here
+            return {**spec.parameters, **LIVE_PARAMETERS.get('stereo_depth_node', {}),
+                    'max_rate': 0.0}
     raise RuntimeError(f'no stereo node in the {SCENE} graph')
 
 

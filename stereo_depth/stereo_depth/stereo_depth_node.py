@@ -32,9 +32,11 @@ Pairing: left and right images are paired by header stamp, exactly by default or
 ``sync_tolerance`` seconds; each pair uses the camera infos with the same stamp, else the latest
 received ones. Processing runs in a worker thread on the newest pair only: a pair that is
 superseded before the worker takes it is dropped and counted (``dropped_stale``), never
-queued. Bad input (size mismatch, unsupported encoding, missing or inconsistent camera info,
-zero baseline) is rejected with a warning naming the problem and counted per reason. The
-processing rate and the counters are logged every ``stats_period`` seconds.
+queued. With ``max_rate`` the pairs beyond that rate (by their stamps: every third of a 30 Hz
+camera at 10 Hz) are skipped at the input and counted (``skipped_rate``). Bad input (size
+mismatch, unsupported encoding, missing or inconsistent camera info, zero baseline) is rejected
+with a warning naming the problem and counted per reason. The processing rate and the counters
+are logged every ``stats_period`` seconds.
 """
 
 from __future__ import annotations
@@ -62,7 +64,7 @@ from stereo_manip_tools.parameters import bool_descriptor, float_descriptor, \
     reject_nonfinite_parameters, string_descriptor
 from stereo_manip_tools.robustness import create_node_or_exit, InputRejections, \
     spin_until_shutdown
-from stereo_manip_tools.sync import StampSynchronizer
+from stereo_manip_tools.sync import StampRateLimiter, StampSynchronizer
 from stereo_manip_tools.tf import publish_camera_mount
 from stereo_manip_tools.worker import NewestOnlyWorker
 from stereo_msgs.msg import DisparityImage
@@ -189,6 +191,10 @@ _PARAMS = {
     'sync_queue_size': (10, int_descriptor(
         'images kept per side while waiting for the partner', 1, 100, read_only=True)),
     'publish_points': (True, bool_descriptor('publish the point cloud on points2')),
+    'max_rate': (0.0, float_descriptor(
+        "largest rate [Hz, of the pairs' stamps] of pairs processed; the others are skipped "
+        'at the input and counted (a camera faster than the graph can follow degrades by '
+        'dropping, with bounded latency); 0 = every pair', 0.0, 1000.0)),
     'stats_period': (5.0, float_descriptor(
         'period [s] of the processing-rate log line', 0.5, 3600.0, read_only=True)),
     'p1': (10, int_descriptor('SGM penalty of a 1-pixel disparity change (sgm, sgm4)',
@@ -315,11 +321,12 @@ class StereoDepthNode(Node):
         self._sync = StampSynchronizer(
             ('left', 'right'), tolerance_ns=int(round(self._params['sync_tolerance'] * 1e9)),
             queue_size=int(self._params['sync_queue_size']))
+        self._rate_limit = StampRateLimiter(float(self._params['max_rate']))
         self._infos: Dict[str, 'OrderedDict[int, CameraInfo]'] = {'left': OrderedDict(),
                                                                   'right': OrderedDict()}
         self.counters: Dict[str, int] = {'received_pairs': 0, 'processed': 0,
                                          'dropped_stale': 0, 'unpaired_images': 0, 'failed': 0,
-                                         'skipped_unsubscribed': 0}
+                                         'skipped_unsubscribed': 0, 'skipped_rate': 0}
         self.rejected: Dict[str, int] = {}
         self._last_warning: Dict[str, float] = {}
         self._proc_times: list = []
@@ -383,6 +390,8 @@ class StereoDepthNode(Node):
             self._params.update(updates)
             if 'sync_tolerance' in updates and hasattr(self, '_sync'):
                 self._sync.tolerance_ns = int(round(updates['sync_tolerance'] * 1e9))
+            if 'max_rate' in updates and hasattr(self, '_rate_limit'):
+                self._rate_limit.max_rate = float(updates['max_rate'])
         return SetParametersResult(successful=True)
 
     # --- input ---------------------------------------------------------------------------------
@@ -417,6 +426,9 @@ class StereoDepthNode(Node):
             if pair is None:
                 return
             self.counters['received_pairs'] += 1
+            if not self._rate_limit.admit(stamp_to_ns(msg.header.stamp)):
+                self.counters['skipped_rate'] += 1          # beyond max_rate
+                return
             if self._worker.put(pair):
                 self.counters['dropped_stale'] += 1       # superseded before processing
 
@@ -559,7 +571,7 @@ class StereoDepthNode(Node):
             f"total processed {counters['processed']}, pairs {counters['received_pairs']}, "
             f"dropped stale {counters['dropped_stale']}, unpaired images "
             f"{counters['unpaired_images']}, failed {counters['failed']}, skipped (no subscriber) "
-            f"{counters['skipped_unsubscribed']}, "
+            f"{counters['skipped_unsubscribed']}, skipped (max_rate) {counters['skipped_rate']}, "
             f'rejected {sum(rejected.values())} {rejected}')
 
     def destroy_node(self) -> None:

@@ -346,6 +346,26 @@ def test_stale_frames_are_dropped_and_counted_not_queued(harness):
 
 
 @pytest.mark.ros
+def test_pairs_beyond_max_rate_are_skipped_at_the_input_and_counted(harness):
+    """A 30 Hz camera under max_rate 10: every third pair is processed, the rest counted."""
+    h = harness(max_disparity=16, max_rate=10.0)
+    left, right = textured_pair(60, 96, seed=5)
+    for k in range(9):
+        h.send(left, right, 1_000_000_000 + k * 33_333_333)
+        assert h.settle(lambda: h.node.counters['received_pairs'] == k + 1, 5.0)
+        h.settle(lambda: h.node.counters['processed'] + h.node.counters['skipped_rate']
+                 + h.node.counters['dropped_stale'] >= k + 1, 5.0)
+    c = h.node.counters
+    assert c['skipped_rate'] == 6 and c['processed'] == 3 and c['dropped_stale'] == 0, c
+    assert [stamp_to_ns(m.header.stamp) for m in h.got['disparity']] == \
+        [1_000_000_000 + k * 33_333_333 for k in (0, 3, 6)]
+    # changed at run time: 0 lets every pair through
+    h.node.set_parameters([Parameter('max_rate', value=0.0)])
+    h.send(left, right, 2_000_000_000)
+    assert h.settle(lambda: c['processed'] == 4, 5.0), c
+
+
+@pytest.mark.ros
 def test_parameters_are_validated_and_changeable_at_run_time(harness):
     h = harness(max_disparity=16)
     node = h.node

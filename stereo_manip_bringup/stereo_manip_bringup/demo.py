@@ -133,9 +133,13 @@ IP_GRAPH_PARAMETERS: Dict[str, Any] = {'max_points': 2000, 'mesh_resolution': 32
 #   every 10th ~40 % (an estimate costs 0.5-3 s CPU).
 # - the stereo node's parallel kernels run on one thread: on 2 cores shared with the localizer
 #   a second thread bought little wall time and cost ~40 % more CPU per frame (block matching
-#   67 vs 48 ms CPU per 640x480 pair under load).
+#   67 vs 48 ms CPU per 640x480 pair under load);
+# - the stereo node takes at most 10 pairs per second of stamps (`max_rate`): the graph's
+#   sustained rate on 2 cores; a faster camera (30 Hz) is thinned at the graph's input, with
+#   the latency of the 10 Hz graph, instead of every node running flat out on whichever frame
+#   it can get (30 Hz before: stereo at 12 Hz, corrected-pose latency max 442 ms).
 LIVE_PARAMETERS: Dict[str, Dict[str, Any]] = {
-    'stereo_depth_node': {'numba_threads': 1},
+    'stereo_depth_node': {'numba_threads': 1, 'max_rate': 10.0},
     'ip_modeler_node': {'min_fit_interval_s': 2.0, 'refit_ratio': 1.5, 'nice': 10},
     'joint_estimator_node': {'estimate_every': 30},
 }

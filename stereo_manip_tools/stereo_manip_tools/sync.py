@@ -1,10 +1,12 @@
 """
-Stamp synchroniser: pairs messages from several streams by header stamp (pure Python).
+Stamp synchroniser and rate limiter for message streams, by header stamp (pure Python).
 
 Replaces ``message_filters`` (not on PyPI). With ``tolerance_ns = 0`` it matches exact stamps
 (``TimeSynchronizer``); with a tolerance it matches the set whose stamps all lie within the
 tolerance of each other (``ApproximateTimeSynchronizer``, simplified: the newest complete set
 wins). Everything dropped is counted, by reason, in :attr:`StampSynchronizer.dropped`.
+:class:`StampRateLimiter` thins a stream to a largest rate by its stamps (a throttle at the
+input of a node that cannot keep up with a fast camera).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
 
-__all__ = ['StampSynchronizer']
+__all__ = ['StampSynchronizer', 'StampRateLimiter']
 
 
 class StampSynchronizer:
@@ -118,3 +120,46 @@ class StampSynchronizer:
         for q in self._queues.values():
             q.clear()
         self._last_match_ns = None
+
+
+class StampRateLimiter:
+    """
+    Let through at most ``max_rate`` items per second of stamps; the others are skipped.
+
+    Items are kept on a grid of one period (1 / ``max_rate``) from the first one: an item is
+    let through when its stamp has reached the next grid point, less ``slack`` of a period
+    (camera stamps jitter), and the grid then moves on by a period (no drift: a 10 Hz camera
+    under a 10 Hz limit keeps every frame, a 30 Hz one every third). After a gap of more than
+    a period the grid restarts at the item; a stamp that goes back (a bag loop, a restarted
+    camera) restarts it too. ``max_rate`` 0: everything passes.
+
+    :param max_rate: largest rate [Hz of stamps]; 0 = no limit.
+    :param slack: share of a period by which an item may be early, in [0, 0.5].
+    """
+
+    def __init__(self, max_rate: float = 0.0, slack: float = 0.25) -> None:
+        if not max_rate >= 0.0:
+            raise ValueError(f'max_rate must be >= 0 Hz, got {max_rate}')
+        if not 0.0 <= slack <= 0.5:
+            raise ValueError(f'slack must be in [0, 0.5], got {slack}')
+        self.max_rate = float(max_rate)
+        self.slack = float(slack)
+        self.skipped = 0
+        self._due_ns: Optional[int] = None
+        self._last_ns: Optional[int] = None
+
+    def admit(self, stamp_ns: int) -> bool:
+        """Return whether the item stamped ``stamp_ns`` passes (else it is counted skipped)."""
+        if self.max_rate <= 0.0:
+            return True
+        period = int(round(1e9 / self.max_rate))
+        if (self._due_ns is None or self._last_ns is None or stamp_ns < self._last_ns
+                or stamp_ns > self._due_ns + period):
+            self._due_ns, self._last_ns = stamp_ns + period, stamp_ns
+            return True
+        if stamp_ns < self._due_ns - self.slack * period:
+            self.skipped += 1
+            return False
+        self._due_ns += period
+        self._last_ns = stamp_ns
+        return True

@@ -1,10 +1,11 @@
-"""The stamp synchroniser pairs exactly or approximately and counts every drop."""
+"""The stamp synchroniser pairs exactly or approximately and counts every drop; the limiter."""
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
+import numpy as np
 import pytest
 
-from stereo_manip_tools.sync import StampSynchronizer
+from stereo_manip_tools.sync import StampRateLimiter, StampSynchronizer
 
 
 def test_exact_pairs_in_any_arrival_order():
@@ -91,3 +92,37 @@ def test_a_large_backward_jump_is_a_source_restart():
     strict.add('l', 10**12, 1)
     strict.add('r', 10**12, 2)
     assert strict.add('l', 5, 3) is None and strict.dropped['older_than_last_match'] == 1
+
+
+def _admitted(limiter, stamps_s):
+    return [t for t in stamps_s if limiter.admit(int(round(t * 1e9)))]
+
+
+def test_rate_limiter_keeps_every_third_frame_of_a_30hz_camera_at_10hz():
+    lim = StampRateLimiter(10.0)
+    rng = np.random.default_rng(3)
+    stamps = np.arange(90) / 30.0 + rng.normal(scale=0.002, size=90)   # 2 ms jitter
+    kept = _admitted(lim, stamps)
+    assert len(kept) == 30 and lim.skipped == 60
+    assert np.allclose(np.diff(kept), 0.1, atol=0.02)            # every third frame +- jitter
+    assert abs(np.mean(np.diff(kept)) - 0.1) < 0.002
+
+
+def test_rate_limiter_keeps_a_camera_at_its_own_rate_and_passes_everything_at_0():
+    rng = np.random.default_rng(4)
+    stamps = np.arange(50) / 10.0 + rng.normal(scale=0.005, size=50)     # 10 Hz, 5 ms jitter
+    assert len(_admitted(StampRateLimiter(10.0), stamps)) == 50
+    assert len(_admitted(StampRateLimiter(0.0), np.arange(50) / 30.0)) == 50
+    # 12 Hz under a 10 Hz limit: 10 per second on average (a drift-free grid)
+    kept = _admitted(StampRateLimiter(10.0), np.arange(120) / 12.0)
+    assert 99 <= len(kept) <= 101
+
+
+def test_rate_limiter_restarts_after_a_gap_or_when_stamps_go_back():
+    lim = StampRateLimiter(10.0)
+    assert _admitted(lim, [0.0, 0.05, 5.0, 5.02, 5.1]) == [0.0, 5.0, 5.1]
+    assert lim.admit(int(1e9))          # a bag loop: stamps went back
+    with pytest.raises(ValueError, match='max_rate'):
+        StampRateLimiter(-1.0)
+    with pytest.raises(ValueError, match='slack'):
+        StampRateLimiter(10.0, slack=0.9)
