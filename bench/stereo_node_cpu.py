@@ -573,6 +573,8 @@ def node_before_after(frames, infos, params: Dict[str, Any], baseline_tree: str,
             values[name] += out['cpu_ms_per_frame_values']
             runs.append({'tree': name, 'cpu_ms_per_frame': out['cpu_ms_per_frame'],
                          'clouds_lost': out['clouds_lost'],
+                         'minor_page_faults_per_frame_mean':
+                             out['minor_page_faults_per_frame_mean'],
                          'load_1min': [load0, os.getloadavg()[0]]})
     per_run = {k: [run['cpu_ms_per_frame']['median'] for run in runs if run['tree'] == k]
                for k in values}
@@ -622,6 +624,10 @@ def main() -> None:
         for k, v in before_after['cpu_ms_per_frame_pooled'].items():
             print(f"node process {k:6s} {v['median']:7.2f} {v['p95']:7.2f} {v['max']:7.2f} ms "
                   f"CPU per frame (pooled), run medians {before_after['run_medians'][k]}")
+        for run in before_after['runs']:
+            print(f"  {run['tree']:6s} {run['cpu_ms_per_frame']['median']:7.2f} ms, "
+                  f"{run['minor_page_faults_per_frame_mean']:.0f} page faults per frame, "
+                  f"load {run['load_1min']}")
     packed = split['cpu_ms']['cloud build + pack (packed, this branch)']
     goals = [
         goal('stereo_depth_node process CPU per frame median [ms] (live peg_in_hole config)',
