@@ -576,7 +576,8 @@ class StereoDepthNode(Node):
 
 def main(args=None):
     # Every frame allocates the same ~1 MB arrays; glibc would unmap them when freed and the
-    # next frame would fault in fresh pages (~1000 page faults, 17-20 ms CPU per 640x480 frame).
+    # next frame would fault in fresh pages (~2100 page faults and ~12 ms CPU per 640x480
+    # frame in bench/stereo_node_cpu.py).
     retained = retain_freed_memory()
     rclpy.init(args=args)
     node = create_node_or_exit(StereoDepthNode, 'stereo_depth_node')
