@@ -27,10 +27,16 @@ CPU per frame of ``stereo_depth_node`` at 640x480 in the live configuration, spl
    (``paired_main_vs_branch``): the change measured under one and the same load. The peer is
    the path of 7594e47 (its kernel and median copied here, OpenCV's ``filterSpeckles``).
 
+4. With ``--baseline-tree DIR`` (a built checkout, e.g. the main branch): that tree's node and
+   this tree's, as separate processes like part 1, run alternately ``--rounds`` times each
+   (``node_process_before_after``): a change of the node process measured under the same load.
+   Part 1 also counts the node's minor page faults per frame (a freed array unmapped by glibc
+   is faulted in again by the next frame).
+
 Goals: node process CPU per frame median <= 50 ms (half a core at 10 Hz: the localiser and
 the contact node need the rest of the two cores); cloud build + pack p95 <= 10 ms.
 
-Run: ``python bench/stereo_node_cpu.py [--frames N]``; writes
+Run: ``python bench/stereo_node_cpu.py [--frames N] [--baseline-tree DIR --rounds R]``; writes
 ``bench/results/stereo_node_cpu.json``.
 """
 
@@ -229,6 +235,11 @@ def task_cpu_ns(pid: int) -> int:
     return total
 
 
+def minor_faults(pid: int) -> int:
+    """Minor page faults of ``pid`` so far (``/proc/<pid>/stat`` field 10)."""
+    return int(Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[7])
+
+
 def task_cpu_by_thread(pid: int) -> Dict[str, int]:
     """Run time [ns] of each thread of ``pid``, keyed ``'<name>/<tid>'``."""
     out = {}
@@ -242,12 +253,14 @@ def task_cpu_by_thread(pid: int) -> Dict[str, int]:
 
 
 def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3,
-                 profile_out: str = '') -> Dict[str, Any]:
+                 profile_out: str = '', python_path: str = '') -> Dict[str, Any]:
     """
     CPU per frame of the node process in lock-step (part 1 of the module docstring).
 
     With ``profile_out`` the node runs under ``bench/stereo_node_profiled.py`` (part 1b): the
-    stage split is read from that file and returned as ``stages``.
+    stage split is read from that file and returned as ``stages``. ``python_path`` is put in
+    front of the node's ``PYTHONPATH`` (part 4: another tree's packages). The per-frame values
+    are returned under ``cpu_ms_per_frame_values``.
     """
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -272,8 +285,13 @@ def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3,
         proc = _ProfiledNode(ros_args, {'NUMBA_NUM_THREADS': '1',
                                         'STEREO_PROFILE_OUT': profile_out})
     else:
+        env = {'NUMBA_NUM_THREADS': '1'}
+        if python_path:
+            env['PYTHONPATH'] = os.pathsep.join(
+                [python_path] + ([os.environ['PYTHONPATH']] if os.environ.get('PYTHONPATH')
+                                 else []))
         proc = ExecutableProcess('stereo_depth', 'stereo_depth_node', ros_args=ros_args,
-                                 env={'NUMBA_NUM_THREADS': '1'})
+                                 env=env)
     try:
         if not proc.wait_for_output('warm-up', timeout=120.0):
             raise RuntimeError('stereo node did not start:\n' + proc.output()[-2000:])
@@ -295,6 +313,7 @@ def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3,
             if i == warmup:
                 c_start, t_start = c0, time.monotonic()
                 threads_start = task_cpu_by_thread(pid)
+                faults_start = minor_faults(pid)
             pubs['left/camera_info'].publish(infos[0])
             pubs['right/camera_info'].publish(infos[1])
             pubs['left/image_rect'].publish(lm)
@@ -312,6 +331,7 @@ def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3,
                 lost += 1
         c_end = task_cpu_ns(pid)
         threads_end = task_cpu_by_thread(pid)
+        faults_end = minor_faults(pid)
         window = time.monotonic() - t_start
         log = proc.output()
     finally:
@@ -332,9 +352,10 @@ def node_process(frames, infos, params: Dict[str, Any], warmup: int = 3,
             'cpu_ms_per_frame_by_thread': {k: v for k, v in sorted(
                 by_tid.items(), key=lambda kv: -kv[1]) if v > 0.01},
             'parameters': params, 'frames': n, 'clouds_lost': lost,
-            'cpu_ms_per_frame': stats(cpu_ms),
+            'cpu_ms_per_frame': stats(cpu_ms), 'cpu_ms_per_frame_values': cpu_ms,
             'cpu_ms_per_frame_mean_over_window': (c_end - c_start) / 1e6 / n,
             'window_s': window,
+            'minor_page_faults_per_frame_mean': (faults_end - faults_start) / n,
             'cloud_latency_ms_lockstep': stats(latency_ms) if latency_ms else None,
             'points_per_cloud': stats(points) if points else None,
             'node_log_tail': log[-1500:], **({'stages': stages} if stages else {})}
@@ -529,11 +550,52 @@ def paired_main_vs_branch(frames, infos, params: Dict[str, Any],
             'clouds_identical': bool(same), 'frames': len(frames), 'rounds': rounds}
 
 
+def node_before_after(frames, infos, params: Dict[str, Any], baseline_tree: str,
+                      rounds: int) -> Dict[str, Any]:
+    """
+    Run the node process of ``baseline_tree`` (before) and of this tree (after) alternately.
+
+    Part 4: ``rounds`` runs of each, in the order before/after, after/before, ... so that both
+    see the same load; the before node is this tree's executable with the baseline tree's
+    ``stereo_depth`` and ``stereo_manip_tools`` (its ``build/<package>`` directories) first on
+    the ``PYTHONPATH``. Per-frame CPU of all runs pooled, and the median of each run.
+    """
+    base = Path(baseline_tree)
+    path = os.pathsep.join(str(base / 'build' / package)
+                           for package in ('stereo_depth', 'stereo_manip_tools'))
+    for p in path.split(os.pathsep):
+        if not (Path(p) / Path(p).name / '__init__.py').is_file():
+            raise FileNotFoundError(f'{p} holds no built package; build {baseline_tree} first')
+    values: Dict[str, List[float]] = {'before': [], 'after': []}
+    runs: List[Dict[str, Any]] = []
+    for r in range(rounds):
+        for name in (('before', 'after') if r % 2 == 0 else ('after', 'before')):
+            load0 = os.getloadavg()[0]
+            out = node_process(frames, infos, params,
+                               python_path=path if name == 'before' else '')
+            values[name] += out['cpu_ms_per_frame_values']
+            runs.append({'tree': name, 'cpu_ms_per_frame': out['cpu_ms_per_frame'],
+                         'clouds_lost': out['clouds_lost'],
+                         'minor_page_faults_per_frame_mean':
+                             out['minor_page_faults_per_frame_mean'],
+                         'load_1min': [load0, os.getloadavg()[0]]})
+    per_run = {k: [run['cpu_ms_per_frame']['median'] for run in runs if run['tree'] == k]
+               for k in values}
+    return {'baseline_tree': str(base), 'rounds': rounds, 'runs': runs,
+            'cpu_ms_per_frame_pooled': {k: stats(v) for k, v in values.items()},
+            'run_medians': per_run,
+            'median_of_run_medians': {k: float(np.median(v)) for k, v in per_run.items()}}
+
+
 def main() -> None:
     """Run the three parts and write the report."""
     ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--frames', type=int, default=60, help='pairs measured')
     ap.add_argument('--note', default='', help='recorded in the JSON')
+    ap.add_argument('--baseline-tree', default='',
+                    help='part 4: a built checkout (e.g. /work/main) whose node runs '
+                         'alternately with this one')
+    ap.add_argument('--rounds', type=int, default=2, help='part 4: runs of each node')
     args = ap.parse_args()
     params = node_parameters()
     frames, infos = render_frames(args.frames)
@@ -544,7 +606,11 @@ def main() -> None:
         profiled = node_process(frames, infos, params, profile_out=str(Path(tmp) / 'p.json'))
     split = stage_split(frames, infos, params)
     paired = paired_main_vs_branch(frames, infos, params)
+    before_after = (node_before_after(frames, infos, params, args.baseline_tree, args.rounds)
+                    if args.baseline_tree else None)
     load_end = list(os.getloadavg())
+    for result in (node, profiled):
+        result.pop('cpu_ms_per_frame_values', None)
     for k, v in split['cpu_ms'].items():
         print(f"{k:52s} {v['median']:7.2f} {v['p95']:7.2f} {v['max']:7.2f} ms CPU")
     c = node['cpu_ms_per_frame']
@@ -557,6 +623,14 @@ def main() -> None:
                                                node['cpu_ms_per_frame_by_thread'].items()})
     print(f"node process: {c['median']:.1f} / {c['p95']:.1f} / {c['max']:.1f} ms CPU per frame "
           f"(median / p95 / max), {node['clouds_lost']} clouds lost; load {load_end}")
+    if before_after:
+        for k, v in before_after['cpu_ms_per_frame_pooled'].items():
+            print(f"node process {k:6s} {v['median']:7.2f} {v['p95']:7.2f} {v['max']:7.2f} ms "
+                  f"CPU per frame (pooled), run medians {before_after['run_medians'][k]}")
+        for run in before_after['runs']:
+            print(f"  {run['tree']:6s} {run['cpu_ms_per_frame']['median']:7.2f} ms, "
+                  f"{run['minor_page_faults_per_frame_mean']:.0f} page faults per frame, "
+                  f"load {run['load_1min']}")
     packed = split['cpu_ms']['cloud build + pack (packed, this branch)']
     goals = [
         goal('stereo_depth_node process CPU per frame median [ms] (live peg_in_hole config)',
@@ -572,7 +646,7 @@ def main() -> None:
                  node_process=node, in_process_stage_split=split,
                  node_process_profiled={k: profiled.get(k) for k in (
                      'stages', 'cpu_ms_per_frame', 'cpu_ms_per_frame_by_thread', 'clouds_lost')},
-                 paired_main_vs_branch=paired,
+                 paired_main_vs_branch=paired, node_process_before_after=before_after,
                  load_average={'start': load_start, 'end': load_end}, note=args.note)
 
 

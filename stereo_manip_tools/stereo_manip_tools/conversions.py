@@ -91,6 +91,18 @@ def ns_to_stamp(ns: int) -> Time:
 
 # --- images -------------------------------------------------------------------------------
 
+def _message_bytes(a: np.ndarray) -> array.array:
+    """
+    Copy the bytes of C-contiguous ``a`` into the ``array.array('B')`` of a ``uint8[]`` field.
+
+    One copy and no per-byte Python work (the field's setter would copy ``bytes`` again, and
+    iterate over anything else).
+    """
+    data = array.array('B')
+    data.frombytes(a.reshape(-1).view(np.uint8))
+    return data
+
+
 def image_to_numpy(msg: Image) -> np.ndarray:
     """
     Decode a ``sensor_msgs/Image`` to an array of shape (H, W) or (H, W, C), copied.
@@ -107,13 +119,15 @@ def image_to_numpy(msg: Image) -> np.ndarray:
     row_bytes = msg.width * channels * dt.itemsize
     if msg.step < row_bytes:
         raise ValueError(f'image step {msg.step} < width*channels*itemsize = {row_bytes}')
-    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, (bytes, bytearray))
-                         else msg.data, dtype=np.uint8)
+    try:    # array.array (as rclpy delivers it), bytes, memoryview: a view, not a copy
+        data = np.frombuffer(msg.data, dtype=np.uint8)
+    except TypeError:       # a list of ints
+        data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
     if data.size < msg.height * msg.step:
         raise ValueError(f'image data has {data.size} bytes, expected height*step = '
                          f'{msg.height * msg.step}')
     rows = data[:msg.height * msg.step].reshape(msg.height, msg.step)[:, :row_bytes]
-    arr = np.ascontiguousarray(rows).view(dt).astype(dt.newbyteorder('='), copy=True)
+    arr = rows.view(dt).astype(dt.newbyteorder('='), copy=True)     # the one copy
     shape = (msg.height, msg.width) if channels == 1 else (msg.height, msg.width, channels)
     return arr.reshape(shape)
 
@@ -142,7 +156,7 @@ def numpy_to_image(array: np.ndarray, encoding: str, header: Optional[Header] = 
     msg.encoding = encoding
     msg.is_bigendian = int(sys.byteorder == 'big')
     msg.step = int(arr.shape[1] * channels * arr.dtype.itemsize)
-    msg.data = arr.tobytes()
+    msg.data = _message_bytes(arr)     # one copy (tobytes + the field's setter: two)
     return msg
 
 
@@ -460,9 +474,7 @@ def float32_fields_to_pointcloud2(buffer: np.ndarray, fields: Sequence[str],
     if is_dense is None:
         is_dense = bool(np.isfinite(b.reshape(-1, k)[:, :3]).all())
     msg.is_dense = bool(is_dense)
-    data = array.array('B')
-    data.frombytes(b.reshape(-1).view(np.uint8))     # one copy, no per-byte Python work
-    msg.data = data
+    msg.data = _message_bytes(b)
     return msg
 
 
