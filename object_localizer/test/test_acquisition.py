@@ -5,6 +5,8 @@ PPF voting, visibility verification, symmetry-aware errors, and acquire_object o
 a synthetic scene (pure core, no ROS).
 """
 
+from dataclasses import replace
+
 import numpy as np
 from object_localizer.acquisition import (acquire_object, prepare_acquisition_model,
                                           prepare_acquisition_scene)
@@ -140,7 +142,6 @@ def test_acquire_object_on_sampled_scene(meshes, symmetries, method):
 
 def test_tracker_acquirer_uses_the_camera_it_is_given(meshes, symmetries, monkeypatch):
     """make_acquirer scores with the camera and baseline of its callables (the node's wiring)."""
-    from dataclasses import replace
     from object_localizer import acquisition
     from object_localizer.tracking import make_acquirer, prepare_tracking_model
     rng = np.random.default_rng(5)
@@ -170,6 +171,35 @@ def test_tracker_acquirer_uses_the_camera_it_is_given(meshes, symmetries, monkey
             stride = CAMERA.fx / observed.camera.fx
             assert stride >= 4.0
             assert observed.camera == replace(CAMERA.scaled(stride), baseline=0.1)
+
+
+def test_tracker_acquirer_prepares_a_cloud_once_for_its_objects(meshes, symmetries, monkeypatch):
+    """The trackers of one cloud (one points array, one camera) share its scene preparation."""
+    from object_localizer import acquisition
+    from object_localizer.tracking import make_acquirer, prepare_tracking_model
+    rng = np.random.default_rng(5)
+    T = make_transform(rotation_about_axis([0.5, -0.3, 1.0], 2.6), [0.04, -0.02, 0.55])
+    cloud = _scene_of(meshes, 'link_arm', T, rng)
+    prepared = []
+    prepare = acquisition.prepare_acquisition_scene
+
+    def spy(*args, **kwargs):
+        prepared.append(prepare(*args, **kwargs))
+        return prepared[-1]
+    monkeypatch.setattr(acquisition, 'prepare_acquisition_scene', spy)
+    arm, peg = prepare_tracking_model(meshes['link_arm']), prepare_tracking_model(meshes['peg'])
+    camera = [CAMERA]
+    acquire = make_acquirer('ppf', time_budget_s=30.0, camera=lambda: camera[0])
+    first = acquire(arm, cloud, 1)
+    acquire(peg, cloud, 1)
+    assert len(prepared) == 1
+    again = acquire(arm, cloud.copy(), 1)           # the next cloud: a new array
+    camera[0] = replace(CAMERA, baseline=0.1)
+    acquire(arm, cloud, 1)                          # the same array, another camera
+    assert len(prepared) == 3
+    for poses in (first, again):
+        e_t, e_r = symmetric_pose_error(poses[0], T, symmetries['link_arm'])
+        assert e_t < 0.002 and e_r < np.radians(2.0), (e_t, np.degrees(e_r))
 
 
 @pytest.fixture(scope='module')
