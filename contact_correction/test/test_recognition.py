@@ -21,7 +21,7 @@ from contact_correction.shapes import t_peg_mesh, t_slot_block_mesh
 from contact_correction.tracks import equivalent_relations as equivalent, make_tracks, \
     noisy_track, track_models
 from contact_correction.trajectory import (
-    ContactCorrector, correct_recognised, correct_trajectory)
+    ContactCorrector, correct_recognised, correct_trajectory, guard_limits)
 import numpy as np
 import pytest
 from stereo_manip_tools.mesh_io import PolygonMesh
@@ -161,7 +161,7 @@ def test_temporal_model_keeps_the_contact_through_an_outlier(models):
                                 np.broadcast_to(I4, To.shape))
     truth = detect_contact_relation(peg, block, I4, I4, tolerance=1e-7)
     assert all(equivalent(peg, block, I4, truth, h.pairs) for h in chosen)
-    per_frame = RecognitionOptions(1e-3, np.deg2rad(1.0), switch_cost=0.0)
+    per_frame = RecognitionOptions(1e-3, np.deg2rad(1.0), switch_cost=0.0, transition_cost=0.0)
     chosen0, _ = recognise_track(RelationRecognizer(peg, block, per_frame), To,
                                  np.broadcast_to(I4, To.shape))
     assert not equivalent(peg, block, I4, truth, chosen0[7].pairs)
@@ -476,3 +476,27 @@ def test_offline_second_pass_finds_the_slot_formation_at_the_entrance(models, tr
                                   for k in range(len(To)) if truth[k])
     assert wrong['defaults'] <= 0.03 * n, wrong
     assert wrong['defaults'] < wrong['one pass'], wrong
+
+
+def test_push_out_releases_contacts_that_would_separate(models):
+    """
+    A T-peg inserted flush but observed 2.8 mm towards -x: its stem 2.8 mm into the slot wall.
+
+    With a relation that holds the bar's end on the bar slot's wall (whose pairs penetrate
+    0.8 mm and are the only ones the guard takes as real: the stem's vertices lie on the
+    block's front plane, their nearest exit), the correction must still remove every
+    penetration (it was passed through: the push-out kept the bar-end pairs as contacts
+    while pushing the stem out of its wall, which they do not allow).
+    """
+    peg, block = models['t_peg'], models['t_slot_block']
+    opts = RecognitionOptions()
+    rec = RelationRecognizer(peg, block, opts)
+    T = make_transform(np.eye(3), [-0.0028, 0.0, 0.0])
+    fc = rec.frame(T, I4)
+    assert penetration_depth(peg, block, T, I4, 0.002) > 0.002
+    h = rec.evaluate(frozenset({('ff', 2, 4), ('ff', 3, 3)}))
+    assert h is not None
+    r = correct_recognised(peg, block, T, I4, h, fc, rec.last_guard(), rec.margin,
+                           guard_limits(opts))
+    assert r.corrected, r.status
+    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-5, r.status
