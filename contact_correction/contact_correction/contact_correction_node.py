@@ -61,7 +61,8 @@ __all__ = ['ContactCorrectionNode', 'main', 'model_path_problem']
 
 _RECOGNITION_PARAMETERS = ('recognition', 'sigma_translation', 'sigma_rotation',
                            'search_margin', 'free_dof_penalty', 'switch_cost',
-                           'ambiguity_margin', 'evidence_chi2', 'max_correction_sigma',
+                           'transition_cost', 'ambiguity_margin', 'evidence_chi2',
+                           'max_correction_sigma',
                            'noise_correlation', 'optimal',
                            'tolerance', 'penetration_tolerance', 'angle_tolerance',
                            'max_translation', 'max_rotation', 'check_penetration',
@@ -153,9 +154,12 @@ class ContactCorrectionNode(Node):
             0.0, 0.2))
         self.declare_parameter('free_dof_penalty', 3.0, _float(
             'recognition score cost per degree of freedom a relation leaves free', 0.0, 100.0))
-        self.declare_parameter('switch_cost', 20.0, _float(
-            'temporal model: score cost per contact switched on or off between frames',
-            0.0, 1000.0))
+        self.declare_parameter('switch_cost', 5.0, _float(
+            'temporal model: score cost per contact switched on or off between frames (on top '
+            'of transition_cost)', 0.0, 1000.0))
+        self.declare_parameter('transition_cost', 15.0, _float(
+            'temporal model: score cost of a change of contact state between frames, once '
+            'per change', 0.0, 1000.0))
         self.declare_parameter('ambiguity_margin', 5.0, _float(
             'at a contact change the evidence does not pin down, enforce only the contacts '
             'common to both relations when the other is within this score margin (online: '
@@ -287,6 +291,7 @@ class ContactCorrectionNode(Node):
             search_margin=margin if margin > 0 else None,
             free_dof_penalty=g('free_dof_penalty').value,
             switch_cost=g('switch_cost').value,
+            transition_cost=g('transition_cost').value,
             ambiguity_margin=g('ambiguity_margin').value,
             evidence_chi2=g('evidence_chi2').value,
             max_correction_sigma=g('max_correction_sigma').value,

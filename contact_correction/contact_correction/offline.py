@@ -288,8 +288,11 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
                         'size / 2))')
     g.add_argument('--free-dof-penalty', type=float, default=3.0,
                    help='recognition score cost per degree of freedom left free')
-    g.add_argument('--switch-cost', type=float, default=20.0,
-                   help='temporal model cost per contact switched on or off')
+    g.add_argument('--switch-cost', type=float, default=5.0,
+                   help='temporal model cost per contact switched on or off (on top of '
+                        '--transition-cost)')
+    g.add_argument('--transition-cost', type=float, default=15.0,
+                   help='temporal model cost of a change of contact state, once per change')
     g.add_argument('--ambiguity-margin', type=float, default=5.0,
                    help='at a contact change the evidence does not pin down, enforce only the '
                         'contacts common to both relations when the other is within this '
@@ -327,8 +330,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     ap.add_argument('--figure', type=Path, default=None, help='write a Fig. 9-like PNG')
     args = ap.parse_args(argv)
     for name in ('sigma_translation', 'sigma_rotation_deg', 'search_margin', 'free_dof_penalty',
-                 'switch_cost', 'ambiguity_margin', 'evidence_chi2', 'max_correction_sigma',
-                 'tolerance', 'penetration_tolerance',
+                 'switch_cost', 'transition_cost', 'ambiguity_margin', 'evidence_chi2',
+                 'max_correction_sigma', 'tolerance', 'penetration_tolerance',
                  'element_margin', 'max_translation', 'max_rotation_deg', 'residual_tolerance'):
         v = getattr(args, name)
         if v is not None and (not np.isfinite(v) or v < 0):
@@ -392,6 +395,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                            search_margin=args.search_margin,
                            free_dof_penalty=args.free_dof_penalty,
                            switch_cost=args.switch_cost,
+                           transition_cost=args.transition_cost,
                            ambiguity_margin=args.ambiguity_margin,
                            evidence_chi2=args.evidence_chi2,
                            max_correction_sigma=args.max_correction_sigma,

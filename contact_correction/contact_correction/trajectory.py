@@ -28,8 +28,8 @@ import numpy as np
 from stereo_manip_tools.transforms import rotation_log
 
 from .contact_relation import (
-    ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts, penetration_depth,
-    relative_pose, VERTEX)
+    ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts, FACE,
+    penetration_depth, relative_pose, VERTEX)
 from .correction import correct_pose, CorrectionResult
 from .nonlinear_correction import apply_screw, constraint_rows
 from .optimal_correction import constraint_directions, constraint_matrix
@@ -236,13 +236,18 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
     tol = max(kwargs.get('residual_tolerance', 1e-9), 1e-6)
     margin_exit = 1e-4     # [m] faces this close to the nearest exit of a vertex count as exits
 
-    def push_out(base: Tuple[ContactPair, ...]) -> Optional[CorrectionResult]:
+    def push_out(base: Tuple[ContactPair, ...], last_resort: bool = False
+                 ) -> Optional[CorrectionResult]:
         """
         Push the pose out with the non-linear step only.
 
         Non-linear step only (the feasible pose nearest the observation) on ``base`` plus
         the pool's pairs that penetrate; pairs found penetrating at the attempt's pose are
-        added and the attempt repeated.
+        added and the attempt repeated. At the observation only the guarded pairs count
+        (real penetration: the face is the vertex's nearest exit), except ``last_resort``
+        when none is: then the penetrating pairs on the face of the deepest one (a peg
+        inserted flush has its vertices on the block's front plane, which the nearest-exit
+        test takes as their exit although they are 2-3 mm into a slot wall).
         """
         if not frame.pool:
             return None
@@ -263,7 +268,12 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
             g = evaluate_contacts(moving, fixed, T_rel, pool)
             new = g.distances < -tol
             if guard is not None and len(guard) == len(new) and T_try is T_moving:
-                new &= guard
+                if last_resort and not np.any(new & guard & ~sel) and np.any(new & ~sel):
+                    k = int(np.argmin(np.where(new & ~sel, g.distances, np.inf)))
+                    face = _penetrated_face(pool[k])
+                    new &= np.array([_penetrated_face(p) == face for p in pool], dtype=bool)
+                else:
+                    new &= guard
             elif T_try is not T_moving:     # the guard is the observation's
                 real = _really_penetrating(moving, fixed, T_rel, pool, new & ~sel,
                                            margin_exit)
@@ -271,12 +281,27 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
                     new = real | (new & sel)    # its plane, as the last resort
             if not np.any(new & ~sel):
                 break
+            added = new & ~sel
             sel |= new
             r = correct_pose(moving, fixed, T_moving, T_fixed,
                              [p for p, s in zip(pool, sel) if s], **kw)
             r.relation_source = 'recognised, push-out'
             if r.corrected:
                 return r
+            if r.T_nonlinear is None and T_try is not T_moving:
+                # not satisfiable with every pair as a contact: pairs brought to contact by
+                # the previous attempt would separate on the way out of the new penetration
+                # (a peg pushed off a bar-slot wall, still 2.5 mm into the stem wall): the
+                # new penetrating pairs on the face of the deepest one, with ``base`` only
+                k = int(np.argmin(np.where(added, g.distances, np.inf)))
+                face = _penetrated_face(pool[k])
+                sel = (added & np.array([_penetrated_face(p) == face for p in pool])) \
+                    | np.array([p in base for p in pool], dtype=bool)
+                r = correct_pose(moving, fixed, T_moving, T_fixed,
+                                 [p for p, s in zip(pool, sel) if s], **kw)
+                r.relation_source = 'recognised, push-out'
+                if r.corrected:
+                    return r
             if r.T_nonlinear is None:
                 break
             T_try = r.T_nonlinear
@@ -466,7 +491,7 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
         first = first or r
     if check and pen > tol and chosen.pairs and not (first is not None and first.guarded):
         # last resort: the penetrating pairs alone
-        r = push_out(())
+        r = push_out((), last_resort=True)
         if r is not None:
             r.status += ' (push-out: no recognised relation could be enforced and the ' \
                         'observation penetrates)'
@@ -488,6 +513,15 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
                                  penetration_before=pen)
     first.relation_source = 'recognised'
     return first
+
+
+def _penetrated_face(pair: ContactPair) -> Tuple[str, int]:
+    """Return the face a pair's distance is measured to: ('fixed' | 'moving', index)."""
+    if pair.fixed_type == FACE:
+        return ('fixed', pair.fixed_index)
+    if pair.moving_type == FACE:
+        return ('moving', pair.moving_index)
+    return ('edge', -1)
 
 
 def _face_boundary_samples(poly: Polyhedron, face: int, spacing: float) -> np.ndarray:
