@@ -140,20 +140,26 @@ def test_acquire_object_on_sampled_scene(meshes, symmetries, method):
     assert all(a.score >= b.score for a, b in zip(hyps, hyps[1:]) if b.refined)
 
 
-def test_tracker_acquirer_uses_the_camera_it_is_given(meshes, symmetries, monkeypatch):
-    """make_acquirer scores with the camera and baseline of its callables (the node's wiring)."""
+def _arm_scene_with_spied_preparation(meshes, monkeypatch):
+    """Return link_arm's pose, a cloud of it and the list every scene preparation joins."""
     from object_localizer import acquisition
-    from object_localizer.tracking import make_acquirer, prepare_tracking_model
     rng = np.random.default_rng(5)
     T = make_transform(rotation_about_axis([0.5, -0.3, 1.0], 2.6), [0.04, -0.02, 0.55])
     cloud = _scene_of(meshes, 'link_arm', T, rng)
-    scenes = []
+    prepared = []
     prepare = acquisition.prepare_acquisition_scene
 
     def spy(*args, **kwargs):
-        scenes.append(prepare(*args, **kwargs))
-        return scenes[-1]
+        prepared.append(prepare(*args, **kwargs))
+        return prepared[-1]
     monkeypatch.setattr(acquisition, 'prepare_acquisition_scene', spy)
+    return T, cloud, prepared
+
+
+def test_tracker_acquirer_uses_the_camera_it_is_given(meshes, symmetries, monkeypatch):
+    """make_acquirer scores with the camera and baseline of its callables (the node's wiring)."""
+    from object_localizer.tracking import make_acquirer, prepare_tracking_model
+    T, cloud, scenes = _arm_scene_with_spied_preparation(meshes, monkeypatch)
     model = prepare_tracking_model(meshes['link_arm'])
     camera = [None]
     acquire = make_acquirer('ppf', time_budget_s=30.0, camera=lambda: camera[0],
@@ -175,18 +181,8 @@ def test_tracker_acquirer_uses_the_camera_it_is_given(meshes, symmetries, monkey
 
 def test_tracker_acquirer_prepares_a_cloud_once_for_its_objects(meshes, symmetries, monkeypatch):
     """The trackers of one cloud (one points array, one camera) share its scene preparation."""
-    from object_localizer import acquisition
     from object_localizer.tracking import make_acquirer, prepare_tracking_model
-    rng = np.random.default_rng(5)
-    T = make_transform(rotation_about_axis([0.5, -0.3, 1.0], 2.6), [0.04, -0.02, 0.55])
-    cloud = _scene_of(meshes, 'link_arm', T, rng)
-    prepared = []
-    prepare = acquisition.prepare_acquisition_scene
-
-    def spy(*args, **kwargs):
-        prepared.append(prepare(*args, **kwargs))
-        return prepared[-1]
-    monkeypatch.setattr(acquisition, 'prepare_acquisition_scene', spy)
+    T, cloud, prepared = _arm_scene_with_spied_preparation(meshes, monkeypatch)
     arm, peg = prepare_tracking_model(meshes['link_arm']), prepare_tracking_model(meshes['peg'])
     camera = [CAMERA]
     acquire = make_acquirer('ppf', time_budget_s=30.0, camera=lambda: camera[0])
