@@ -425,3 +425,28 @@ def test_ppf_references_are_bounded_on_huge_clouds(meshes, monkeypatch):
     T = make_transform(rotation_about_axis([0.2, 1.0, 0.1], 0.9), [0.03, -0.02, 0.7])
     acquire_object(model, sample_visible_surface(meshes['link_arm'], T, 6000, seed=3))
     assert seen[-1][1] == 5
+
+
+def test_same_place_up_to_symmetries_but_not_slid(meshes):
+    """A cylinder turned about its axis is the same place; a brick slid 5 mm along itself not."""
+    from object_localizer.acquisition import _same_place
+    T = make_transform(rotation_about_axis([0.3, 1.0, 0.2], 1.1), [0.02, -0.03, 0.6])
+    cyl = prepare_acquisition_model(meshes['cylinder'])
+    c = cyl.surface.points.mean(axis=0)
+    # the cylinder's axis: the principal axis its samples are spread least evenly about
+    for axis in cyl.axes:
+        turn = make_transform(rotation_about_axis(axis, 0.9), c) @ make_transform(np.eye(3), -c)
+        if _same_place(cyl, T, T @ turn, 0.002):
+            break
+    else:
+        pytest.fail('no turn about a principal axis of the cylinder kept its place')
+    arm = prepare_acquisition_model(meshes['link_arm'])
+    slid = T.copy()
+    slid[:3, 3] += 0.005 * (T[:3, :3] @ arm.axes[0])          # along its length
+    assert not _same_place(arm, T, slid, 0.002)
+    assert _same_place(arm, T, T, 0.002)
+    # turned by 30 deg about its length: not a symmetry of the brick
+    c = arm.surface.points.mean(axis=0)
+    turned = T @ make_transform(rotation_about_axis(arm.axes[0], np.radians(30.0)), c) @ \
+        make_transform(np.eye(3), -c)
+    assert not _same_place(arm, T, turned, 0.002)
