@@ -4,11 +4,14 @@ Losses and re-acquisition of the localiser node on a slow graph, in-process, aga
 
 The ``revolute_pair`` scene (link_base and link_arm: two identical bricks, hinted with their
 frame-0 poses as the demo does) as the graph's stereo node sees it (the clouds of
-``bench/localizer_graph_cpu.py``, cached), every ``--step``-th scene frame (default 18: the
+``bench/localizer_graph_cpu.py``, cached), every ``--steps``-th scene frame (default 18: the
 0.6 s between the clouds a loaded free-running graph processes, see
 ``bench/results/localizer_live.json``; the scene loops, so its last-to-first frame is a real
 28 mm jump of both links), stamps ``step / 30`` s apart, fed to an in-process
-``ObjectLocalizerNode`` through its per-cloud method.
+``ObjectLocalizerNode`` through its per-cloud method. ``--scene peg_in_hole``: the peg (no
+hint) and hole_block (static) instead, the scene looping from the inserted peg to its start
+above the block (``--steps 3,6,9,12,15,21,24,27,30,33 --clouds 75``: every cloud spacing from
+the camera rate to a graph 10 times slower).
 
 Per object and cloud: the published pose's ADD-S against the truth, the status reason, the
 tracker's CPU. A loss is a cloud whose outcome says the track was lost; its re-acquisition CPU
@@ -17,10 +20,12 @@ is the object's tracker CPU from that cloud to the next cloud with a verified po
 Peer, in the same run on the same clouds: the node with the local re-acquisition off
 (``relock_window`` 0: every loss goes to the global search, as before the re-lock) and the
 naming radius fixed (``twin_max_speed`` 0: 20 mm), the global searches uncapped
-(``search_cpu_share`` 1).
+(``search_cpu_share`` 1); and the node with the slide search off (``slide_min_step`` 0: a
+pose found without a motion prediction is not searched along the model's axes).
 
-Usage: ``ROS_DOMAIN_ID=57 nice -n 10 python bench/localizer_reacquisition.py [--clouds 60]``.
-Writes ``bench/results/localizer_reacquisition.json``.
+Usage: ``ROS_DOMAIN_ID=57 nice -n 10 python bench/localizer_reacquisition.py [--clouds 60]
+[--steps 18] [--scene revolute_pair]``. Writes ``bench/results/localizer_reacquisition.json``
+(``localizer_reacquisition_peg_in_hole.json`` for the peg scene).
 """
 
 from __future__ import annotations
@@ -40,6 +45,12 @@ os.environ.setdefault('LOCALIZER_GRAPH_CACHE', '/tmp/localizer_reacquisition_cac
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # localizer_graph_cpu
 
 PEER = {'relock_window': 0.0, 'twin_max_speed': 0.0, 'search_cpu_share': 1.0}
+#: the node before the slide search (a pose found without a prediction is not searched along
+#: the model's axes)
+SLIDE_OFF = {'slide_min_step': 0.0}
+#: scene -> (models, static models, hinted with the frame-0 poses), as bench/localizer_live.py
+SCENES = {'revolute_pair': (['link_base', 'link_arm'], [], True),
+          'peg_in_hole': (['hole_block', 'peg'], ['hole_block'], False)}
 
 
 def frames_of(step: int, count: int, n_scene: int = 300) -> List[int]:
@@ -47,7 +58,8 @@ def frames_of(step: int, count: int, n_scene: int = 300) -> List[int]:
     return [(k * step) % n_scene // 3 * 3 for k in range(count)]
 
 
-def run(data: List[Dict[str, Any]], step: int, overrides: Dict[str, Any]) -> Dict[str, Any]:
+def run(data: List[Dict[str, Any]], step: int, overrides: Dict[str, Any],
+        scene: str = 'revolute_pair') -> Dict[str, Any]:
     """Feed the clouds to a fresh in-process node with ``overrides``; score every outcome."""
     from rclpy.parameter import Parameter
 
@@ -57,8 +69,11 @@ def run(data: List[Dict[str, Any]], step: int, overrides: Dict[str, Any]) -> Dic
     from stereo_manip_bringup.demo import _localizer
     from stereo_manip_tools.conversions import xyz_to_pointcloud2
 
-    spec = _localizer('revolute_pair', ['link_base', 'link_arm'])
+    names, static, hinted = SCENES[scene]
+    spec = _localizer(scene, names, static)
     params = {**spec.parameters, **overrides}
+    if not hinted:
+        del params['initial_poses']
     node = ObjectLocalizerNode(parameter_overrides=[Parameter(k, value=v)
                                                     for k, v in params.items()])
     outcomes: Dict[str, list] = {n: [] for n in node.trackers}
@@ -116,41 +131,67 @@ def run(data: List[Dict[str, Any]], step: int, overrides: Dict[str, Any]) -> Dic
 def main() -> None:
     """Run the peer and the node on the same clouds; write the report."""
     parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
-    parser.add_argument('--step', type=int, default=18, help='scene frames between clouds')
+    parser.add_argument('--steps', default='18',
+                        help='scene frames between clouds; a comma list runs each spacing '
+                        '(the figures are pooled over them)')
     parser.add_argument('--clouds', type=int, default=60)
+    parser.add_argument('--scene', choices=sorted(SCENES), default='revolute_pair',
+                        help='peg_in_hole writes localizer_reacquisition_peg_in_hole.json')
     args = parser.parse_args()
     import rclpy
 
     from localizer_graph_cpu import spread, stereo_clouds
+    from stereo_depth.synthetic import make_scene
     rclpy.init()
-    data = stereo_clouds('revolute_pair', frames_of(args.step, args.clouds))
-    runs = {}
-    for label, overrides in (('peer: local re-acquisition off', PEER), ('now', {})):
-        runs[label] = run(data, args.step, overrides)
-        for name, o in runs[label]['objects'].items():
-            print(f"{label} {name}: published {o['published']}/{o['clouds']}, over 5 mm "
-                  f"{o['published_over_5mm']}, losses {o['losses']}, unrecovered "
-                  f"{o['unrecovered_at_end']}, re-acq CPU s {o['reacquisition_cpu_s']}, "
-                  f"ambiguous {o['clouds_ambiguous']}", flush=True)
+    runs: Dict[str, Any] = {}
+    labels = (('peer: local re-acquisition off', PEER), ('peer: slide search off', SLIDE_OFF),
+              ('now', {}))
+    for step in [int(v) for v in args.steps.split(',')]:
+        data = stereo_clouds(args.scene, frames_of(step, args.clouds,
+                                                   make_scene(args.scene).n_frames))
+        for label, overrides in labels:
+            key = f'{label} (step {step})'
+            runs[key] = run(data, step, overrides, args.scene)
+            for name, o in runs[key]['objects'].items():
+                print(f"{key} {name}: published {o['published']}/{o['clouds']}, over 5 mm "
+                      f"{o['published_over_5mm']}, ADD-S mm {o['add_s_mm']}, losses "
+                      f"{o['losses']}, unrecovered {o['unrecovered_at_end']}, re-acq CPU s "
+                      f"{o['reacquisition_cpu_s']}, ambiguous {o['clouds_ambiguous']}",
+                      flush=True)
     rclpy.shutdown()
-    now = runs['now']['objects'].values()
-    recov = [x for o in now for x in o['reacquisition_cpu_s_all']]
-    unrec = sum(o['unrecovered_at_end'] for o in now)
+
+    def pooled(label: str) -> Dict[str, Any]:
+        objs = [o for k, r in runs.items() if k.startswith(label + ' (')
+                for o in r['objects'].values()]
+        return {'objects': objs,
+                'published': sum(o['published'] for o in objs),
+                'clouds': sum(o['clouds'] for o in objs),
+                'published_over_5mm': sum(o['published_over_5mm'] for o in objs),
+                'add_s_mm_max': max(o['add_s_mm']['max'] for o in objs),
+                'losses': sum(o['losses'] for o in objs),
+                'unrecovered_at_end': sum(o['unrecovered_at_end'] for o in objs),
+                'reacquisition_cpu_s': spread([x for o in objs
+                                               for x in o['reacquisition_cpu_s_all']])}
+    summary = {label: pooled(label) for label, _ in labels}
+    for label, v in summary.items():
+        print(label, {k: x for k, x in v.items() if k != 'objects'})
+    now = summary['now']
     goals = [
-        goal('published_poses_over_5mm_add_s', 0, '==',
-             sum(o['published_over_5mm'] for o in now)),
-        goal('losses_not_reacquired', 0, '==', unrec),
+        goal('published_poses_over_5mm_add_s', 0, '==', now['published_over_5mm']),
+        goal('losses_not_reacquired', 0, '==', now['unrecovered_at_end']),
         goal('reacquisition_cpu_s_max', 1.0, '<=',
-             max(recov) if recov and not unrec else float('nan')),
+             now['reacquisition_cpu_s']['max'] if not now['unrecovered_at_end']
+             else float('nan')),
         goal('clouds_without_pose_share', 0.1, '<=',
-             sum(o['clouds'] - o['published'] for o in now)
-             / max(sum(o['clouds'] for o in now), 1)),
+             (now['clouds'] - now['published']) / max(now['clouds'], 1)),
     ]
-    write_report('localizer_reacquisition', goals, runs=runs, args=vars(args),
-                 reacquisition_cpu_s=spread(recov),
-                 peer_reacquisition_cpu_s=spread(
-                     [x for o in runs['peer: local re-acquisition off']['objects'].values()
-                      for x in o['reacquisition_cpu_s_all']]))
+    name = 'localizer_reacquisition' + ('' if args.scene == 'revolute_pair' else f'_{args.scene}')
+    write_report(name, goals, runs=runs, args=vars(args),
+                 summary={k: {f: x for f, x in v.items() if f != 'objects'}
+                          for k, v in summary.items()},
+                 reacquisition_cpu_s=now['reacquisition_cpu_s'],
+                 peer_reacquisition_cpu_s=summary['peer: local re-acquisition off'][
+                     'reacquisition_cpu_s'])
 
 
 if __name__ == '__main__':

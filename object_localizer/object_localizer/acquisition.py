@@ -72,7 +72,8 @@ from object_localizer.localization import (fpfh_features, match_features_ransac,
 from object_localizer.point_to_plane import icp_point_to_plane
 from object_localizer.ppf import build_ppf_model, cluster_poses, ppf_vote, PPFModel
 from object_localizer.tracking import (check_pose, PoseQuality, prepare_tracking_model,
-                                       SceneCloud, track_icp, TrackerSettings, TrackingModel)
+                                       principal_axes, SceneCloud, track_icp, TrackerSettings,
+                                       TrackingModel)
 from object_localizer.verification import (as_camera, CameraLike, observe_depth, ObservedDepth,
                                            sample_model_surface, score_pose_visibility,
                                            SurfaceSamples, unoccluded_mask, VisibilityScore)
@@ -312,8 +313,7 @@ def prepare_acquisition_model(mesh: PolygonMesh, *, ppf_relative_step: float = 0
     pcd = pcd.voxel_down_sample(step)
     pcd.normalize_normals()
     ppf = build_ppf_model(np.asarray(pcd.points), np.asarray(pcd.normals), step)
-    Q = surface.points - centroid
-    axes = np.linalg.eigh(Q.T @ Q)[1].T[::-1].copy()
+    axes = principal_axes(surface.points)
     if check_model is None:
         check_model = prepare_tracking_model(mesh, icp_voxel, seed=seed, template=template)
     return AcquisitionModel(mesh.name, template, ppf, surface, centroid, diameter, axes,

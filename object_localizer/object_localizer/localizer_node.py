@@ -76,6 +76,7 @@ class ObjectLocalizerNode(Node):
         'relock_window': 'relock_window',
         'relock_shift': 'relock_shift',
         'relock_turn': 'relock_turn',
+        'slide_min_step': 'slide_min_step',
         'twin_max_speed': 'twin_max_speed',
         'motion_memory': 'motion_memory',
         'track_length': 'max_history',
@@ -154,6 +155,10 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('relock_turn', 0.15,
                                _float('... and turned by +- this [rad] about each model axis',
                                       0.0, 1.0))
+        self.declare_parameter('slide_min_step', 0.004,
+                               _float('a pose found without a motion prediction is searched '
+                                      'along the model axes for better scene support, in steps '
+                                      'halved down to this [m] (0: off)', 0.0, 0.05))
         self.declare_parameter('twin_max_speed', 0.1,
                                _float('identical parts: the radius within which a place may '
                                       'carry the name of a part grows by this [m/s] with the '
