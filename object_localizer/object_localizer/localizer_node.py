@@ -77,6 +77,7 @@ class ObjectLocalizerNode(Node):
         'relock_shift': 'relock_shift',
         'relock_turn': 'relock_turn',
         'slide_min_step': 'slide_min_step',
+        'min_support_ratio': 'min_support_ratio',
         'twin_max_speed': 'twin_max_speed',
         'motion_memory': 'motion_memory',
         'track_length': 'max_history',
@@ -159,6 +160,11 @@ class ObjectLocalizerNode(Node):
                                _float('a pose found without a motion prediction is searched '
                                       'along the model axes for better scene support, in steps '
                                       'halved down to this [m] (0: off)', 0.0, 0.05))
+        self.declare_parameter('min_support_ratio', 1.25,
+                               _float('of overlapping places that pass the acquisition check, '
+                                      'one supported by this many times the scene samples of '
+                                      'every other is taken (0: such places stay ambiguous)',
+                                      0.0, 100.0))
         self.declare_parameter('twin_max_speed', 0.1,
                                _float('identical parts: the radius within which a place may '
                                       'carry the name of a part grows by this [m/s] with the '

@@ -142,7 +142,17 @@ class TrackerSettings:
         typical wrong pose of a part lying on a bigger one).
     :ivar ambiguity_distance: acquisition results farther apart than this (ADD-S [m]) are
         distinct solutions; when several pass the check the object is ambiguous (identical
-        parts) and is only published if the last known pose is clearly nearer one of them.
+        parts) and is only published if the last known pose is clearly nearer one of them, or
+        (a part with no identical twin) if the places overlap and one is clearly better
+        supported (``min_support_ratio``).
+    :ivar min_support_ratio: of distinct places that pass the check, the one the scene supports
+        with at least this many times the samples of every other (inliers minus contradicted
+        expected-visible samples, :attr:`PoseQuality.support`) is taken when every other place
+        overlaps it (more than 10 % of the volume deeper than ``max_penetration``): one part
+        cannot be in two overlapping places, and the one explaining clearly more of the scene
+        is it (hole_block in the stereo cloud of peg_in_hole frame 15: 6480 samples at 1.0 mm
+        from the truth, 4443 at 25.8 mm; left ambiguous, the block was not verified, and the
+        peg's search put the peg 77 mm off inside the block, published). 0 turns it off.
     :ivar twin_reacquire_radius: a part with an identical twin is re-acquired only within this
         mean displacement [m] of its last known pose (and clearly nearer it than the twin's).
     :ivar relock_window: for this long [s, cloud stamps] after a loss (from the cloud of the
@@ -211,6 +221,7 @@ class TrackerSettings:
     min_visible_samples: int = 30
     max_penetration: float = 0.005
     ambiguity_distance: float = 0.005
+    min_support_ratio: float = 1.25
     twin_reacquire_radius: float = 0.02
     relock_window: float = 1.0
     relock_shift: float = 0.012
@@ -523,6 +534,11 @@ class PoseQuality:
     quality: float = 0.0
     passed: bool = False
     reason: str = ''
+
+    @property
+    def support(self) -> float:
+        """Inliers minus contradicted samples (:attr:`VisibleEvidence.support`) of the check."""
+        return self.visible_samples * (2.0 * self.inlier_fraction - 1.0)
 
 
 def _range_image(points: np.ndarray, pixel: float, lo: np.ndarray, shape: Tuple[int, int]
@@ -1157,6 +1173,15 @@ class ObjectTracker:
                 return self._start(stamp_ns, pose, q, hint_reason + (
                     f'acquired ({len(distinct)} distinct pose(s) fit; the one nearest the last '
                     'known pose)'), acquired=True)
+        # ... or, without an identical part, overlapping places of which one explains clearly
+        # more of the scene
+        best = None if open_twins else self.best_supported(distinct)
+        if best is not None:
+            pose, q = best
+            others = sorted((d[1].support for d in distinct if d is not best), reverse=True)
+            return self._start(stamp_ns, pose, q, hint_reason + (
+                f'acquired ({len(distinct)} overlapping places fit; the one the scene supports '
+                f'clearly best: {q.support:.0f} samples, next {others[0]:.0f})'), acquired=True)
         gaps = [symmetric_distance(self.model, d[0], distinct[0][0]) for d in distinct[1:]]
         return TrackUpdate(None, state, distinct[0][1], f'{hint_reason}ambiguous: '
                            f'{len(distinct)} distinct poses fit the cloud '
@@ -1171,6 +1196,27 @@ class ObjectTracker:
                    for d in distinct):
                 distinct.append((pose, q))
         return distinct
+
+    def best_supported(self, places: list) -> Optional[Tuple[np.ndarray, PoseQuality]]:
+        """
+        Return the place clearly best supported by the scene among overlapping ones, or None.
+
+        ``places``: (pose, quality) pairs that passed the check. The one with the largest
+        :attr:`PoseQuality.support` is returned when it has at least ``min_support_ratio``
+        times the support of every other and every other overlaps it (more than 10 % of the
+        volume deeper than ``max_penetration`` inside it: the same part cannot be in both);
+        None otherwise (a place apart from it may be another part of the same shape).
+        """
+        s = self.settings
+        if s.min_support_ratio <= 0 or len(places) < 2:
+            return None
+        ranked = sorted(places, key=lambda pq: -pq[1].support)
+        best = ranked[0]
+        for pose, q in ranked[1:]:
+            if best[1].support < s.min_support_ratio * max(q.support, 0.0) or \
+                    penetration(self.model, pose, self.model, best[0], s.max_penetration) <= 0.1:
+                return None
+        return best
 
     def _assign_among_twins(self, distinct: list, twins: List[np.ndarray]
                             ) -> Optional[Tuple[np.ndarray, PoseQuality]]:

@@ -631,3 +631,27 @@ def test_a_peg_slid_into_the_hole_along_itself_is_slid_back():
         errors[step] = add_s(res.pose, T, peg.points)
         assert ('slid' in res.reason) == (step > 0), res.reason
     assert errors[0.0] > 0.002 and errors[0.004] < 0.0005, errors
+
+
+def test_of_overlapping_places_the_clearly_best_supported_is_taken(arm):
+    """
+    One part cannot be in two overlapping places: the one explaining clearly more wins.
+
+    Places apart from each other (maybe another part of the same shape), or supported about
+    equally, stay ambiguous (None).
+    """
+    from object_localizer.tracking import PoseQuality
+    _, model = arm
+    tracker = ObjectTracker(model, TrackerSettings())
+    T = moving_pose(0)
+    beside = T @ make_transform(np.eye(3), [0.0, 0.012, 0.0])      # half its width over
+    apart = T @ make_transform(np.eye(3), [0.0, 0.2, 0.0])
+    strong = PoseQuality(visible_samples=2000, inlier_fraction=0.95, passed=True)  # 1800
+    weak = PoseQuality(visible_samples=1500, inlier_fraction=0.9, passed=True)     # 1200
+    close = PoseQuality(visible_samples=1900, inlier_fraction=0.94, passed=True)   # 1672
+    chosen = tracker.best_supported([(beside, weak), (T, strong)])
+    assert chosen is not None and chosen[0] is T
+    assert tracker.best_supported([(T, strong), (apart, weak)]) is None
+    assert tracker.best_supported([(T, strong), (beside, close)]) is None
+    off = ObjectTracker(model, TrackerSettings(min_support_ratio=0.0))
+    assert off.best_supported([(beside, weak), (T, strong)]) is None
