@@ -895,6 +895,27 @@ class RelationTracker:
                 return c
         return h
 
+    def _drop_boundary_groups(self, h: Hypothesis) -> Hypothesis:
+        """
+        Return ``h`` less its face-face groups that share no area (online, the chosen relation).
+
+        :meth:`RelationRecognizer.boundary_groups` at ``h``'s corrected pose; a wrong group
+        moves that pose, so the others may fail there too (a T-peg in its slot taken against
+        the block's front face: pulled out of the slot, the slot's walls share no area with
+        its sides either). The relations less one failing group are scored, and the best one
+        with every face-face group an area contact at its own corrected pose is used; else
+        ``h`` less every failing group (the contacts common to them: a subset of ``h``).
+        """
+        rec = self.recognizer
+        bad = rec.boundary_groups(h)
+        if not bad:
+            return h
+        fine = [c for c in (rec.evaluate(h.state - {k}) for k in bad)
+                if c is not None and c.delta is not None and not rec.boundary_groups(c)]
+        if fine:
+            return min(fine, key=lambda c: c.score)
+        return rec.evaluate(h.state - bad) or self.recognizer._fc.hypothesis(h.state - bad)
+
     def innovation_chi2(self, h: Hypothesis) -> float:
         """
         Return the chi2 of ``h`` in the current frame with its correction part the innovation's.
@@ -974,9 +995,7 @@ class RelationTracker:
             if not keep_history:
                 h = self.innovation_check(h)
         if not keep_history and rec.options.area_contact_check and h.state in fc.hypotheses:
-            bad = rec.boundary_groups(h)
-            if bad:
-                h = rec.evaluate(h.state - bad) or fc.hypothesis(h.state - bad)
+            h = self._drop_boundary_groups(h)
         self._prev = fc.hypotheses     # the noise estimates of this frame, for the next one
         return h, fc
 

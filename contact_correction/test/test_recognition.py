@@ -589,3 +589,33 @@ def test_push_out_of_a_peg_entering_the_hole_keeps_its_depth(models):
     assert r.corrected and 'push-out' in r.status, r.status
     assert penetration_depth(peg, hole, r.T_moving, I4, 0.002) < 1e-8
     assert abs(r.T_moving[2, 3] - T[2, 3]) < 1e-9
+
+
+def test_online_choice_keeps_the_slot_contacts_a_flush_face_made_fail(models):
+    """
+    The T-peg 1.5 mm into its slot, observed 0.4 mm out, 1.7 mm aside and tilted 2 deg.
+
+    The online choice at the track's first frame is the front face flush plus the floor and a
+    stem wall (rank 6): at its corrected pose the peg is pulled back to the slot's entrance,
+    where neither the front face nor the in-slot faces share an area with the peg's. Dropping
+    every failing group left no contact, the push-out found no feasible pose and a fallback
+    relation pulled the peg 1.9 mm out along the slot. The relation less the front face alone
+    has its faces in contact at its own corrected pose: it is used, the true relation, and
+    the position along the slot is kept. Without the area check the peg is pulled out.
+    """
+    peg, block = models['t_peg'], models['t_slot_block']
+    T_true = make_transform(np.eye(3), [0.0, 0.0185, 0.0])
+    truth = detect_contact_relation(peg, block, T_true, I4, tolerance=1e-7)
+    w = np.array([0.0143510001, 0.0317846022, 0.0040043414])
+    T = make_transform(rotation_about_axis(w, float(np.linalg.norm(w))),
+                       [0.0017054254, 0.0180672412, -0.0005016191])
+    out = {}
+    for check in (True, False):
+        cor = ContactCorrector(peg, block, RecognitionOptions(1e-3, np.deg2rad(1.0),
+                                                              area_contact_check=check))
+        out[check] = cor.update(T, I4)
+    r = out[True]
+    assert r.corrected and equivalent(peg, block, T_true, truth, r.pairs), r.status
+    assert abs(r.T_moving[1, 3] - T[1, 3]) < 1e-9
+    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
+    assert out[False].T_moving[1, 3] - T[1, 3] > 1e-3
