@@ -41,6 +41,12 @@ near the other object as a contact. Here the relation is *selected*, as a model:
    probability), selects the relation sequence of least
    total cost. Online (node) the current best path's end is used, which gives hysteresis;
    offline (:func:`recognise_track`) the whole sequence is back-tracked.
+6. **Online checks of the choice** (:meth:`RelationTracker.update`, the frame's output only,
+   the paths unchanged): the safe rule (only the groups common with a nearby relation with
+   fewer constraints that fits better), the evidence rule on the frame's chi2 and, with
+   ``noise_correlation``, on the innovation chi2 (:meth:`RelationTracker.innovation_check`),
+   and the area check of the chosen relation's face-face groups
+   (:meth:`RelationRecognizer.boundary_groups`). Each returns a subset of the chosen relation.
 
 All quantities are in the fixed object's model frame, metres and radians.
 """
@@ -895,7 +901,7 @@ class RelationTracker:
                 return c
         return h
 
-    def _drop_boundary_groups(self, h: Hypothesis) -> Hypothesis:
+    def _drop_boundary_groups(self, h: Hypothesis, fc: FrameCandidates) -> Hypothesis:
         """
         Return ``h`` less its face-face groups that share no area (online, the chosen relation).
 
@@ -905,6 +911,8 @@ class RelationTracker:
         its sides either). The relations less one failing group are scored, and the best one
         with every face-face group an area contact at its own corrected pose is used; else
         ``h`` less every failing group (the contacts common to them: a subset of ``h``).
+
+        :param h: the chosen relation, a hypothesis of the current frame ``fc``.
         """
         rec = self.recognizer
         bad = rec.boundary_groups(h)
@@ -914,7 +922,7 @@ class RelationTracker:
                 if c is not None and c.delta is not None and not rec.boundary_groups(c)]
         if fine:
             return min(fine, key=lambda c: c.score)
-        return rec.evaluate(h.state - bad) or self.recognizer._fc.hypothesis(h.state - bad)
+        return rec.evaluate(h.state - bad) or fc.hypothesis(h.state - bad)
 
     def innovation_chi2(self, h: Hypothesis) -> float:
         """
@@ -995,7 +1003,7 @@ class RelationTracker:
             if not keep_history:
                 h = self.innovation_check(h)
         if not keep_history and rec.options.area_contact_check and h.state in fc.hypotheses:
-            h = self._drop_boundary_groups(h)
+            h = self._drop_boundary_groups(h, fc)
         self._prev = fc.hypotheses     # the noise estimates of this frame, for the next one
         return h, fc
 
