@@ -175,7 +175,8 @@ class ContactCorrectionNode(Node):
         self.declare_parameter('noise_correlation', 0.0, _float(
             'frame-to-frame correlation (AR(1) rho) of the pose errors: the correct_trajectory '
             "service's temporal model scores a held relation by the innovation of its noise "
-            'estimate (the online path does not use it); 0: independent errors', 0.0, 0.99))
+            'estimate; online, a contact the innovation rejects (evidence_chi2) is dropped for '
+            'that frame; 0: independent errors', 0.0, 0.99))
         self.declare_parameter('element_margin', 1e-6, _float(
             'largest distance [m] of a corrected contact point outside its element (given / '
             'detected relations; recognised ones use the search margin)', 0.0, 0.05))

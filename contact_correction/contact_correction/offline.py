@@ -309,7 +309,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     g.add_argument('--noise-correlation', type=float, default=0.0,
                    help='frame-to-frame correlation of the pose errors (AR(1) rho, [0, 1)): the '
                         'offline temporal model scores a held relation by the innovation of '
-                        'its noise estimate (not used with --online; 0: independent errors)')
+                        'its noise estimate (with --online: a contact the innovation rejects '
+                        'at --evidence-chi2 is dropped for that frame; 0: independent errors)')
     g.add_argument('--tolerance', type=float, default=0.002,
                    help='contact distance of --per-frame-detection [m]')
     g.add_argument('--penetration-tolerance', type=float, default=None,

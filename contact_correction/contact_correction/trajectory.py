@@ -254,6 +254,7 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
         pool = list(frame.pool)
         sel = np.array([p in base for p in pool], dtype=bool)
         T_try = np.asarray(T_moving, dtype=float)
+        left = float('nan')     # [m] penetration left at T_try (the last attempt's)
         kw = dict(kwargs, optimal=False)
         for _ in range(3):
             T_rel = relative_pose(T_try, T_fixed)
@@ -277,8 +278,18 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
             elif T_try is not T_moving:     # the guard is the observation's
                 real = _really_penetrating(moving, fixed, T_rel, pool, new & ~sel,
                                            margin_exit)
-                if np.any(real):    # else (penetration along edges only): every pair behind
-                    new = real | (new & sel)    # its plane, as the last resort
+                if np.any(real):
+                    new = real | (new & sel)
+                elif np.isfinite(left):
+                    # penetration along edges only: the pairs behind their plane by no more
+                    # than the penetration left (plus the exit margin), else every pair behind
+                    # its plane, as the last resort. A peg 2.7 mm into a zero-clearance hole,
+                    # pushed off a wall with 0.18 mm left along its edges, had its bottom
+                    # vertices (2.5-4.3 mm below the top face's plane) pushed up through the
+                    # top face: 2.7 mm along the direction the walls leave free
+                    shallow = new & ~sel & (g.distances >= -(left + margin_exit))
+                    if np.any(shallow):
+                        new = shallow | (new & sel)
             if not np.any(new & ~sel):
                 break
             added = new & ~sel
@@ -305,6 +316,7 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
             if r.T_nonlinear is None:
                 break
             T_try = r.T_nonlinear
+            left = r.penetration_after
         return None
 
     def over(r: CorrectionResult) -> bool:

@@ -500,3 +500,122 @@ def test_push_out_releases_contacts_that_would_separate(models):
                            guard_limits(opts))
     assert r.corrected, r.status
     assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-5, r.status
+
+
+def test_online_innovation_releases_a_contact_the_frame_alone_cannot_reject(models, tracks):
+    """
+    The shipped peg sliding on slot_block's floor, then lifted 3.3 mm (the first frame up).
+
+    Observed with a steady 2 mm error down (an AR(1) tracker's error changes little between
+    frames): on the floor frames the correction lifts it 2 mm onto the floor; at the first
+    lifted frame the observation is 1.3 mm above the floor, which the frame's chi2 cannot tell
+    from noise (1.7 for one sigma of 1 mm), but holding the floor contact needs a correction
+    that jumps from 2 mm up to 1.3 mm down (innovation chi2 about 32 at rho 0.85). With the
+    stated correlation the online corrector drops the floor there (the true relation: the
+    walls) and keeps the observed height; without it (rho 0: no innovation) the hysteresis
+    pulls the peg 1.3 mm down along the direction the walls leave free.
+    """
+    tr = tracks['peg_slot']
+    lifted = tr.phases.index('pulled_out')
+    out = {}
+    for rho in (0.85, 0.0):
+        cor = ContactCorrector(tr.moving, tr.fixed,
+                               RecognitionOptions(1e-3, np.deg2rad(1.0), noise_correlation=rho))
+        res = []
+        for k in range(lifted - 8, lifted + 1):
+            T = tr.T_rel[k].copy()
+            T[2, 3] -= 0.002
+            res.append((k, T, cor.update(T, I4)))
+        out[rho] = res
+    for k, T, r in out[0.85][:-1]:     # on the floor: lifted onto it
+        assert r.T_moving[2, 3] == pytest.approx(tr.T_rel[k][2, 3], abs=1e-9), r.status
+    k, T, r = out[0.85][-1]
+    truth = detect_contact_relation(tr.moving, tr.fixed, tr.T_rel[k], I4, tolerance=1e-7)
+    assert equivalent(tr.moving, tr.fixed, tr.T_rel[k], truth, r.pairs), r.status
+    assert abs(r.T_moving[2, 3] - T[2, 3]) < 1e-9
+    k, T, r = out[0.0][-1]
+    assert r.T_moving[2, 3] - T[2, 3] < -1e-3
+    assert not equivalent(tr.moving, tr.fixed, tr.T_rel[k], truth, r.pairs)
+
+
+def test_online_choice_drops_a_flush_face_meeting_only_along_the_slot_outline(models):
+    """
+    The T-peg 1.5 mm into its slot, observed 0.3 mm out, 0.5 mm low and tilted 0.6 deg.
+
+    The online temporal model's best relation has the peg's back face on the block's front face
+    (rank 6: it pulls the peg 1.2 mm out, along the slot, which the true relation leaves free).
+    At that relation's first-order corrected pose the two faces share no area (the peg's
+    profile fits the slot's), so the online choice drops that group (``area_contact_check``,
+    the offline search's check, here on the chosen relation only): the true relation is used
+    and the position along the slot is kept. Without the check the peg is pulled out 1.2 mm.
+    """
+    peg, block = models['t_peg'], models['t_slot_block']
+    T_true = make_transform(np.eye(3), [0.0, 0.0185, 0.0])
+    truth = detect_contact_relation(peg, block, T_true, I4, tolerance=1e-7)
+    T = make_transform(rotation_about_axis(np.array([1.0, 0.2, 0.1]), 0.01),
+                       [0.0, 0.0188, -0.0005])
+    out = {}
+    for check in (True, False):
+        cor = ContactCorrector(peg, block, RecognitionOptions(1e-3, np.deg2rad(1.0),
+                                                              area_contact_check=check))
+        out[check] = cor.update(T, I4)
+    r = out[True]
+    assert r.corrected and equivalent(peg, block, T_true, truth, r.pairs), r.status
+    assert abs(r.T_moving[1, 3] - T[1, 3]) < 1e-9
+    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
+    assert out[False].T_moving[1, 3] - T[1, 3] > 1e-3
+
+
+def test_push_out_of_a_peg_entering_the_hole_keeps_its_depth(models):
+    """
+    The shipped peg 2.7 mm into hole_block's zero-clearance hole, 1.2 mm into a wall, 3.3 deg.
+
+    The free relation chosen (the hysteresis of the frames above the hole). The push-out off
+    the walls leaves 0.18 mm of penetration along edges, with no vertex whose nearest exit is
+    the face it is behind; before, every pair behind its plane was then added, the bottom
+    vertices 2.5-4.3 mm below the top face's plane among them, and the peg was lifted onto
+    the top face: 2.7 mm along the hole's axis, which the walls leave free. Now only the pairs
+    no deeper than the penetration left are added: the depth is kept, no penetration remains.
+    """
+    peg, hole = models['peg'], models['hole_block']
+    w = np.array([0.0357818408, 0.0454390062, -0.0072961109])
+    T = make_transform(rotation_about_axis(w, float(np.linalg.norm(w))),
+                       [0.0011638958, -0.000293386, -0.0027182213])
+    assert penetration_depth(peg, hole, T, I4, 0.002) > 1e-3
+    rec = RelationRecognizer(peg, hole, RecognitionOptions(1e-3, np.deg2rad(1.0)))
+    fc = rec.frame(T, I4)
+    free = Hypothesis(frozenset(), (), 0.0, 0, 0.0)
+    r = correct_recognised(peg, hole, T, I4, free, fc, rec.last_guard(), rec.margin)
+    assert r.corrected and 'push-out' in r.status, r.status
+    assert penetration_depth(peg, hole, r.T_moving, I4, 0.002) < 1e-8
+    assert abs(r.T_moving[2, 3] - T[2, 3]) < 1e-9
+
+
+def test_online_choice_keeps_the_slot_contacts_a_flush_face_made_fail(models):
+    """
+    The T-peg 1.5 mm into its slot, observed 0.4 mm out, 1.7 mm aside and tilted 2 deg.
+
+    The online choice at the track's first frame is the front face flush plus the floor and a
+    stem wall (rank 6): at its corrected pose the peg is pulled back to the slot's entrance,
+    where neither the front face nor the in-slot faces share an area with the peg's. Dropping
+    every failing group left no contact, the push-out found no feasible pose and a fallback
+    relation pulled the peg 1.9 mm out along the slot. The relation less the front face alone
+    has its faces in contact at its own corrected pose: it is used, the true relation, and
+    the position along the slot is kept. Without the area check the peg is pulled out.
+    """
+    peg, block = models['t_peg'], models['t_slot_block']
+    T_true = make_transform(np.eye(3), [0.0, 0.0185, 0.0])
+    truth = detect_contact_relation(peg, block, T_true, I4, tolerance=1e-7)
+    w = np.array([0.0143510001, 0.0317846022, 0.0040043414])
+    T = make_transform(rotation_about_axis(w, float(np.linalg.norm(w))),
+                       [0.0017054254, 0.0180672412, -0.0005016191])
+    out = {}
+    for check in (True, False):
+        cor = ContactCorrector(peg, block, RecognitionOptions(1e-3, np.deg2rad(1.0),
+                                                              area_contact_check=check))
+        out[check] = cor.update(T, I4)
+    r = out[True]
+    assert r.corrected and equivalent(peg, block, T_true, truth, r.pairs), r.status
+    assert abs(r.T_moving[1, 3] - T[1, 3]) < 1e-9
+    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
+    assert out[False].T_moving[1, 3] - T[1, 3] > 1e-3
