@@ -327,9 +327,11 @@ def write(args, records, summary, per_object, timing):
                  tolerance={'translation_m': TOL_T, 'rotation_deg': float(np.degrees(TOL_R))},
                  load_average_at_write=list(os.getloadavg()),
                  final_check=bool(getattr(args, 'final_check', False)),
-                 accuracy_run_note='accuracy run under the shared CPU lock at load average '
-                                   '5-17 (other helpers busy): its time_s figures are inflated; '
-                                   'see timing_exclusive_lock for the times on a quiet machine',
+                 accuracy_run_note=(
+                     f"the summary's time_s figures are this run's, at a 1-min load average of "
+                     f"{summary[best]['load_1min']['median']:.1f} (median over its trials); "
+                     'timing_exclusive_lock, when present, holds trials re-timed by '
+                     '--timing-only and the time goals use them'),
                  records=records,
                  stereo='block_matching, 160 disparities (the demo stereo node settings)')
 
