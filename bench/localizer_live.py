@@ -7,7 +7,8 @@ Graph (separate processes from the install tree, as ``make demo`` starts them):
 NO initial pose: global acquisition from scratch) and ``revolute_pair`` (link_base, link_arm:
 two identical bricks, which no geometric search can tell apart, so they get the objects' poses
 at frame 0 as hints, as the demo does; in free-running mode the localizer starts later in the
-scene, so the hints are stale and are verified, not trusted), each
+scene, so the hints are stale and are verified, not trusted) and ``primitives`` (cube and
+torus, hinted as the demo does), each
 
 - free-running: the camera at ``--rate`` Hz with ``frame_step`` 3 (the scene at 10 fps), for
   ``--seconds``; the scene wraps around at its end (the objects jump back: a real loss);
@@ -37,7 +38,8 @@ from stereo_manip_tools.processes import ExecutableProcess, make_node, process_c
     shutdown_node, spin_until
 
 SCENES = {'peg_in_hole': (['hole_block', 'peg'], ['hole_block'], False),
-          'revolute_pair': (['link_base', 'link_arm'], [], True)}
+          'revolute_pair': (['link_base', 'link_arm'], [], True),
+          'primitives': (['cube', 'torus'], [], True)}
 
 
 def _hints(scene, names):
@@ -196,7 +198,7 @@ def main() -> None:
     parser.add_argument('--rate', type=float, default=10.0, help='free-running camera rate')
     parser.add_argument('--seconds', type=float, default=45.0, help='free-running duration')
     parser.add_argument('--frames', type=int, default=40, help='triggered frames')
-    parser.add_argument('--scenes', default='peg_in_hole,revolute_pair')
+    parser.add_argument('--scenes', default='peg_in_hole,revolute_pair,primitives')
     parser.add_argument('--modes', default='free_running,triggered')
     parser.add_argument('--param', action='append', default=[], metavar='NAME=VALUE',
                         help='a localizer parameter (repeatable; an A/B of one setting)')
