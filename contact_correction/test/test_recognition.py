@@ -538,6 +538,28 @@ def test_online_innovation_releases_a_contact_the_frame_alone_cannot_reject(mode
     assert not equivalent(tr.moving, tr.fixed, tr.T_rel[k], truth, r.pairs)
 
 
+def _assert_area_check_keeps_the_position_along_the_slot(models, T):
+    """
+    Check the online choice for the T-peg 1.5 mm into its slot, observed at ``T``.
+
+    With the check: the true relation, the position along the slot (y) unchanged, no
+    penetration; without it: the peg pulled more than 1 mm out along the slot.
+    """
+    peg, block = models['t_peg'], models['t_slot_block']
+    T_true = make_transform(np.eye(3), [0.0, 0.0185, 0.0])
+    truth = detect_contact_relation(peg, block, T_true, I4, tolerance=1e-7)
+    out = {}
+    for check in (True, False):
+        cor = ContactCorrector(peg, block, RecognitionOptions(1e-3, np.deg2rad(1.0),
+                                                              area_contact_check=check))
+        out[check] = cor.update(T, I4)
+    r = out[True]
+    assert r.corrected and equivalent(peg, block, T_true, truth, r.pairs), r.status
+    assert abs(r.T_moving[1, 3] - T[1, 3]) < 1e-9
+    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
+    assert out[False].T_moving[1, 3] - T[1, 3] > 1e-3
+
+
 def test_online_choice_drops_a_flush_face_meeting_only_along_the_slot_outline(models):
     """
     The T-peg 1.5 mm into its slot, observed 0.3 mm out, 0.5 mm low and tilted 0.6 deg.
@@ -549,21 +571,9 @@ def test_online_choice_drops_a_flush_face_meeting_only_along_the_slot_outline(mo
     the offline search's check, here on the chosen relation only): the true relation is used
     and the position along the slot is kept. Without the check the peg is pulled out 1.2 mm.
     """
-    peg, block = models['t_peg'], models['t_slot_block']
-    T_true = make_transform(np.eye(3), [0.0, 0.0185, 0.0])
-    truth = detect_contact_relation(peg, block, T_true, I4, tolerance=1e-7)
     T = make_transform(rotation_about_axis(np.array([1.0, 0.2, 0.1]), 0.01),
                        [0.0, 0.0188, -0.0005])
-    out = {}
-    for check in (True, False):
-        cor = ContactCorrector(peg, block, RecognitionOptions(1e-3, np.deg2rad(1.0),
-                                                              area_contact_check=check))
-        out[check] = cor.update(T, I4)
-    r = out[True]
-    assert r.corrected and equivalent(peg, block, T_true, truth, r.pairs), r.status
-    assert abs(r.T_moving[1, 3] - T[1, 3]) < 1e-9
-    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
-    assert out[False].T_moving[1, 3] - T[1, 3] > 1e-3
+    _assert_area_check_keeps_the_position_along_the_slot(models, T)
 
 
 def test_push_out_of_a_peg_entering_the_hole_keeps_its_depth(models):
@@ -603,19 +613,7 @@ def test_online_choice_keeps_the_slot_contacts_a_flush_face_made_fail(models):
     has its faces in contact at its own corrected pose: it is used, the true relation, and
     the position along the slot is kept. Without the area check the peg is pulled out.
     """
-    peg, block = models['t_peg'], models['t_slot_block']
-    T_true = make_transform(np.eye(3), [0.0, 0.0185, 0.0])
-    truth = detect_contact_relation(peg, block, T_true, I4, tolerance=1e-7)
     w = np.array([0.0143510001, 0.0317846022, 0.0040043414])
     T = make_transform(rotation_about_axis(w, float(np.linalg.norm(w))),
                        [0.0017054254, 0.0180672412, -0.0005016191])
-    out = {}
-    for check in (True, False):
-        cor = ContactCorrector(peg, block, RecognitionOptions(1e-3, np.deg2rad(1.0),
-                                                              area_contact_check=check))
-        out[check] = cor.update(T, I4)
-    r = out[True]
-    assert r.corrected and equivalent(peg, block, T_true, truth, r.pairs), r.status
-    assert abs(r.T_moving[1, 3] - T[1, 3]) < 1e-9
-    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
-    assert out[False].T_moving[1, 3] - T[1, 3] > 1e-3
+    _assert_area_check_keeps_the_position_along_the_slot(models, T)
