@@ -111,3 +111,13 @@ def test_model_readers_depend_on_the_model_package(package):
     if readers:
         assert 'stereo_manip_models' in run, \
             f'{package} loads models ({readers[0].name}) without exec_depend stereo_manip_models'
+
+
+def test_every_package_has_a_readme():
+    """Every ament package of the workspace (each folder with a package.xml) documents itself."""
+    folders = sorted(p.parent for p in ROOT.glob('*/package.xml')) + \
+        sorted(p.parent for p in ROOT.glob('ros_compat/*/package.xml'))
+    assert len(folders) >= 9, folders
+    missing = [str(f.relative_to(ROOT)) for f in folders
+               if not (f / 'README.md').is_file() or len((f / 'README.md').read_text()) < 300]
+    assert not missing, f'packages without a README: {missing}'
