@@ -72,8 +72,8 @@ from object_localizer.localization import (fpfh_features, match_features_ransac,
 from object_localizer.point_to_plane import icp_point_to_plane
 from object_localizer.ppf import build_ppf_model, cluster_poses, ppf_vote, PPFModel
 from object_localizer.tracking import (check_pose, PoseQuality, prepare_tracking_model,
-                                       principal_axes, SceneCloud, track_icp, TrackerSettings,
-                                       TrackingModel)
+                                       principal_axes, SceneCloud, search_along_axes,
+                                       track_icp, TrackerSettings, TrackingModel)
 from object_localizer.verification import (as_camera, CameraLike, observe_depth, ObservedDepth,
                                            sample_model_surface, score_pose_visibility,
                                            SurfaceSamples, unoccluded_mask, VisibilityScore)
@@ -467,23 +467,9 @@ def _slide_search(model: AcquisitionModel, pose: np.ndarray, observed: ObservedD
     def score(T: np.ndarray) -> float:
         return score_pose_visibility(model.surface, T, observed,
                                      inlier_threshold=tolerance).combined
-    best = score(pose)
-    moved = False
-    for axis in model.axes:
-        direction = pose[:3, :3] @ axis
-        delta = model.diameter / 4.0
-        while delta >= 0.004:
-            improved = False
-            for sign in (1.0, -1.0):
-                T = pose.copy()
-                T[:3, 3] += sign * delta * direction
-                v = score(T)
-                if v > best + 0.01:
-                    best, pose, improved, moved = v, T, True, True
-                    break
-            if not improved:
-                delta /= 2.0
-    return pose, moved
+    slid = search_along_axes(pose, model.axes, [model.diameter / 4.0] * len(model.axes), score,
+                             0.01, 0.004)[0]
+    return slid, slid is not pose
 
 
 def _same_place(model: AcquisitionModel, pose_a: np.ndarray, pose_b: np.ndarray,

@@ -313,6 +313,41 @@ def principal_axes(points: np.ndarray, tie: float = 0.05) -> np.ndarray:
     return np.array(axes)
 
 
+def search_along_axes(pose: np.ndarray, axes: np.ndarray, first_steps: Sequence[float],
+                      score: Callable[[np.ndarray], float], gain: float, min_step: float,
+                      max_shifts: Optional[Sequence[float]] = None
+                      ) -> Tuple[np.ndarray, float, float]:
+    """
+    Pattern search of a pose's translation along model axes, by a score.
+
+    Along each row of ``axes`` (model frame; turned by the pose's rotation) in turn: steps of
+    ``first_steps[k]`` [m] in both senses, halved down to ``min_step`` [m] whenever neither
+    raises ``score`` by more than ``gain``; a move that does is kept (and the same step tried
+    again). ``max_shifts[k]`` [m] bounds the total shift along axis k (None: unbounded).
+
+    :return: (pose, its score, the score of the given pose); the given pose object itself
+        when no move was kept.
+    """
+    best = start = score(pose)
+    for k, axis in enumerate(axes):
+        direction = pose[:3, :3] @ axis
+        delta, shift = float(first_steps[k]), 0.0
+        while delta >= min_step:
+            improved = False
+            for sign in (1.0, -1.0):
+                if max_shifts is not None and abs(shift + sign * delta) > max_shifts[k]:
+                    continue
+                T = pose.copy()
+                T[:3, 3] += sign * delta * direction
+                v = score(T)
+                if v > best + gain:
+                    best, pose, improved, shift = v, T, True, shift + sign * delta
+                    break
+            if not improved:
+                delta /= 2.0
+    return pose, best, start
+
+
 def prepare_tracking_model(mesh: PolygonMesh, voxel_size: float = 0.003,
                            tracking_voxel: float = 0.002, seed: int = 0,
                            template: Optional[ModelTemplate] = None) -> TrackingModel:
@@ -1364,25 +1399,10 @@ class ObjectTracker:
             return pose, q, ''
         centre = pose[:3, :3] @ m.centre + pose[:3, 3]
         cone = scene.cone(centre, m.radius + 2.0 * s.max_distance + 0.5 * float(max(m.extents)))
-        start = visible_evidence(m, pose, cone, s).support
         gain = max(0.02 * q.visible_samples, s.min_visible_samples)
-        best, T0 = start, pose
-        for axis, extent in zip(m.axes, m.extents):
-            direction = pose[:3, :3] @ axis
-            delta, shift = 0.25 * float(extent), 0.0
-            while delta >= s.slide_min_step:
-                improved = False
-                for sign in (1.0, -1.0):
-                    if abs(shift + sign * delta) > 0.5 * extent:
-                        continue
-                    T = T0.copy()
-                    T[:3, 3] += sign * delta * direction
-                    v = visible_evidence(m, T, cone, s).support
-                    if v > best + gain:
-                        best, T0, improved, shift = v, T, True, shift + sign * delta
-                        break
-                if not improved:
-                    delta /= 2.0
+        T0, _, start = search_along_axes(
+            pose, m.axes, 0.25 * m.extents, lambda T: visible_evidence(m, T, cone, s).support,
+            gain, s.slide_min_step, 0.5 * m.extents)
         if T0 is pose:
             return pose, q, ''
         pose2, q2 = self._refine_and_check(scene, T0, None, acquisition=True)
