@@ -42,16 +42,15 @@ from stereo_manip_tools.bench_report import goal, write_report
 # its own cache of the stereo clouds: the default one of localizer_graph_cpu.py may hold clouds
 # of an older stereo node (a flat surface at the band limit, which the node now leaves unknown)
 os.environ.setdefault('LOCALIZER_GRAPH_CACHE', '/tmp/localizer_reacquisition_cache')
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # localizer_graph_cpu
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # localizer_graph_cpu, _live
+
+#: scene -> (models, static models, hinted with the frame-0 poses): the live benchmark's
+from localizer_live import SCENES  # noqa: E402
 
 PEER = {'relock_window': 0.0, 'twin_max_speed': 0.0, 'search_cpu_share': 1.0}
 #: the node before the slide search (a pose found without a prediction is not searched along
 #: the model's axes)
 SLIDE_OFF = {'slide_min_step': 0.0}
-#: scene -> (models, static models, hinted with the frame-0 poses), as bench/localizer_live.py
-SCENES = {'revolute_pair': (['link_base', 'link_arm'], [], True),
-          'peg_in_hole': (['hole_block', 'peg'], ['hole_block'], False),
-          'primitives': (['cube', 'torus'], [], True)}
 
 
 def frames_of(step: int, count: int, n_scene: int = 300) -> List[int]:
@@ -165,8 +164,7 @@ def main() -> None:
     def pooled(label: str) -> Dict[str, Any]:
         objs = [o for k, r in runs.items() if k.startswith(label + ' (')
                 for o in r['objects'].values()]
-        return {'objects': objs,
-                'published': sum(o['published'] for o in objs),
+        return {'published': sum(o['published'] for o in objs),
                 'clouds': sum(o['clouds'] for o in objs),
                 'published_over_5mm': sum(o['published_over_5mm'] for o in objs),
                 'add_s_mm_max': max(o['add_s_mm']['max'] for o in objs),
@@ -176,7 +174,7 @@ def main() -> None:
                                                for x in o['reacquisition_cpu_s_all']])}
     summary = {label: pooled(label) for label, _ in labels}
     for label, v in summary.items():
-        print(label, {k: x for k, x in v.items() if k != 'objects'})
+        print(label, v)
     now = summary['now']
     goals = [
         goal('published_poses_over_5mm_add_s', 0, '==', now['published_over_5mm']),
@@ -190,8 +188,7 @@ def main() -> None:
     ]
     name = 'localizer_reacquisition' + ('' if args.scene == 'revolute_pair' else f'_{args.scene}')
     write_report(name, goals, runs=runs, args=vars(args),
-                 summary={k: {f: x for f, x in v.items() if f != 'objects'}
-                          for k, v in summary.items()},
+                 summary=summary,
                  reacquisition_cpu_s=now['reacquisition_cpu_s'],
                  peer_reacquisition_cpu_s=summary['peer: local re-acquisition off'][
                      'reacquisition_cpu_s'])
