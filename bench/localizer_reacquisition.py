@@ -37,15 +37,14 @@ import sys
 import time
 from typing import Any, Dict, List
 
-from stereo_manip_tools.bench_report import goal, write_report
-
 # its own cache of the stereo clouds: the default one of localizer_graph_cpu.py may hold clouds
 # of an older stereo node (a flat surface at the band limit, which the node now leaves unknown)
 os.environ.setdefault('LOCALIZER_GRAPH_CACHE', '/tmp/localizer_reacquisition_cache')
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # localizer_graph_cpu, _live
 
-#: scene -> (models, static models, hinted with the frame-0 poses): the live benchmark's
+# SCENES: scene -> (models, static models, hinted with the frame-0 poses), the live benchmark's
 from localizer_live import SCENES  # noqa: E402
+from stereo_manip_tools.bench_report import goal, write_report  # noqa: E402
 
 PEER = {'relock_window': 0.0, 'twin_max_speed': 0.0, 'search_cpu_share': 1.0}
 #: the node before the slide search (a pose found without a prediction is not searched along
