@@ -61,9 +61,10 @@ def camera_from_camera_info(msg: CameraInfo) -> PinholeCamera:
 
 
 def track_status(header: Header, name: str, state: TrackState, quality: PoseQuality | None,
-                 reason: str) -> TrackStatus:
-    """Make the ``TrackStatus`` of one object for one processed cloud."""
-    msg = TrackStatus(header=header, object_name=name, state=int(state), reason=reason)
+                 reason: str, cpu_seconds: float = 0.0) -> TrackStatus:
+    """Make the ``TrackStatus`` of one object for one processed cloud (CPU time in [s])."""
+    msg = TrackStatus(header=header, object_name=name, state=int(state), reason=reason,
+                      cpu_time=float(cpu_seconds))
     if quality is not None:
         msg.quality = float(quality.quality)
         msg.inlier_fraction = float(quality.inlier_fraction)

@@ -29,7 +29,7 @@ from object_localizer.acquisition import prepare_acquisition_model
 from object_localizer.conversions import camera_from_camera_info, cloud_xyz, track_status
 from object_localizer.naming import identical_groups, name_identical_parts
 from object_localizer.tracking import make_acquirer, ObjectTracker, prepare_tracking_model, \
-    same_shape, SceneCloud, TrackerSettings, TrackState, TrackUpdate
+    same_shape, SceneCloud, TrackerSettings, TrackState, TrackUpdate, withdraw_overlapping
 from object_localizer.verification import PinholeCamera
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, \
     SetParametersResult
@@ -258,7 +258,8 @@ class ObjectLocalizerNode(Node):
         # static objects first: the others are checked against their verified poses
         self._order = sorted(names, key=lambda n: n not in static)
         self.counts = {'received': 0, 'processed': 0, 'dropped_stale': 0, 'rejected': 0,
-                       'published': 0, 'lost': 0, 'acquired': 0, 'searches_deferred': 0}
+                       'published': 0, 'lost': 0, 'acquired': 0, 'searches_deferred': 0,
+                       'withdrawn': 0}
         # global-search CPU credit [s] and the wall time [s, monotonic] it was last updated
         self._search_credit = self.get_parameter('search_cpu_burst').value
         self._credit_time = time.monotonic()
@@ -371,11 +372,15 @@ class ObjectLocalizerNode(Node):
             if was == TrackState.TRACKING and result.lost and result.pose is None:
                 lost[name] = result      # searched for below, in this cloud
                 continue
-            self._publish(name, result, msg, scene, verified)
+            if result.pose is not None:
+                verified.append((self.trackers[name].model, result.pose))
+            self._publish(name, result, msg, scene)
+        tracked = list(verified)
         # identical parts left unnamed by their own searches (every place they found is far
         # from their stale known poses) are named together after the others
         in_group = {n for g in self._groups for n in g}
         deferred: Dict[str, TrackUpdate] = {}
+        found: Dict[str, TrackUpdate] = {}       # the searches' outcomes, in search order
         # only a moving object tracked in this cloud has a camera rate to keep: a static one is
         # held (re-checked once per static_recheck_period), so it does not defer the searches
         # (after a restart of the peg graph, the hole block found first made the peg's searches
@@ -398,7 +403,20 @@ class ObjectLocalizerNode(Node):
             if name in in_group and result.pose is None and self.trackers[name].places:
                 deferred[name] = result
                 continue
-            self._publish(name, result, msg, scene, verified)
+            found[name] = result
+            if result.pose is not None:     # the later searches are checked against it
+                verified.append((self.trackers[name].model, result.pose))
+        # each search was checked against the poses before it only: a pose that overlaps a
+        # better one found in this cloud (or a tracked one) is withdrawn before anything of
+        # the searches is published
+        for name, result in zip(found, withdraw_overlapping(
+                [(self.trackers[n], r) for n, r in found.items()], tracked)):
+            if result.pose is None and found[name].pose is not None:
+                self.counts['withdrawn'] += 1
+                if not result.lost:         # (a loss is logged with its outcome)
+                    self.get_logger().warning(f'{name}: {result.reason}')
+            found[name] = result
+            self._publish(name, result, msg, scene)
         for group in self._groups:
             if all(n in deferred for n in group):
                 t0 = time.process_time()
@@ -414,7 +432,7 @@ class ObjectLocalizerNode(Node):
                     result.lost = first.lost
                     deferred[group[k]] = result
         for name in [n for n in self._order if n in deferred]:
-            self._publish(name, deferred[name], msg, scene, verified)
+            self._publish(name, deferred[name], msg, scene)
 
     def _search_allowed(self, tracking: bool) -> bool:
         """
@@ -436,15 +454,13 @@ class ObjectLocalizerNode(Node):
         self._credit_time = now
         return not tracking or share >= 1.0 or self._search_credit > 0.0
 
-    def _publish(self, name: str, result: TrackUpdate, msg: PointCloud2, scene: SceneCloud,
-                 verified: list) -> None:
-        """Count, log and publish one object's outcome of a cloud; a pose joins ``verified``."""
+    def _publish(self, name: str, result: TrackUpdate, msg: PointCloud2,
+                 scene: SceneCloud) -> None:
+        """Count, log and publish one object's outcome of a cloud."""
         tracker = self.trackers[name]
         self._cpu[name].append(result.cpu_seconds)
         if 'first pose' not in self._startup:
             self._startup.setdefault(f'{name} first outcome', time.monotonic())
-        if result.pose is not None:
-            verified.append((tracker.model, result.pose))
         if result.lost:
             self.counts['lost'] += 1
             self.get_logger().warning(f'{name}: {result.reason}')
@@ -466,7 +482,7 @@ class ObjectLocalizerNode(Node):
             state = TrackState.ACQUIRING
             reason = f'naming uncertain (identical parts named by stale known poses): {reason}'
         self.status_pubs[name].publish(track_status(msg.header, name, state, result.quality,
-                                                    reason))
+                                                    reason, result.cpu_seconds))
         if result.pose is None:
             return
         if self.cloud_pubs[name].get_subscription_count() > 0:

@@ -28,7 +28,7 @@ import itertools
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from object_localizer.tracking import mean_displacement, ObjectTracker, penetration, \
+from object_localizer.tracking import mean_displacement, ObjectTracker, overlap, \
     symmetric_distance, TrackerSettings, TrackingModel, TrackUpdate
 
 #: (pose 4x4 model -> sensor, age [s] or None for a hint of unknown age)
@@ -94,8 +94,7 @@ def _clusters(model, places: list, depth: float) -> List[List[int]]:
             i = parent[i]
         return i
     for i, j in itertools.combinations(range(len(places)), 2):
-        if max(penetration(model, places[i][0], model, places[j][0], depth),
-               penetration(model, places[j][0], model, places[i][0], depth)) > 0.1:
+        if overlap(model, places[i][0], model, places[j][0], depth) > 0.1:
             parent[root(j)] = root(i)
     groups: Dict[int, List[int]] = {}
     for i in range(len(places)):

@@ -402,6 +402,19 @@ def penetration(model: TrackingModel, pose: np.ndarray, other: TrackingModel,
     return float(np.mean(other.signed_distance(local) < -depth))
 
 
+def overlap(model: TrackingModel, pose: np.ndarray, other: TrackingModel,
+            other_pose: np.ndarray, depth: float) -> float:
+    """
+    Overlap of two placed volumes: the larger of the two :func:`penetration` shares.
+
+    The share of either model's interior points lying more than ``depth`` [m] inside the other
+    (both poses 4x4 model -> sensor), the larger of the two: a small part sunk into a large
+    one overlaps it fully even where the large one's share inside the small one is small.
+    """
+    return max(penetration(model, pose, other, other_pose, depth),
+               penetration(other, other_pose, model, pose, depth))
+
+
 def mean_displacement(model: TrackingModel, pose_a: np.ndarray, pose_b: np.ndarray) -> float:
     """Mean distance [m] between the model's probe points placed by two poses (ADD)."""
     d = model.probe @ (pose_a[:3, :3] - pose_b[:3, :3]).T + (pose_a[:3, 3] - pose_b[:3, 3])
@@ -977,6 +990,7 @@ class ObjectTracker:
     _motion: tuple = ()                        # the last two verified (stamp, pose) before a loss
     _last_quality: Optional[PoseQuality] = None
     _others: list = field(default_factory=list)
+    _state_before: TrackState = TrackState.ACQUIRING   # the state before the last update
 
     def reset(self, pose: Optional[np.ndarray] = None) -> None:
         """
@@ -1042,6 +1056,7 @@ class ObjectTracker:
         t0 = time.process_time()
         scene = points if isinstance(points, SceneCloud) else SceneCloud(points)
         self._others = list(others)
+        self._state_before = self.state
         result = self._update(scene, int(stamp_ns), reacquire, search)
         result.cpu_seconds = time.process_time() - t0
         if result.pose is not None:
@@ -1417,6 +1432,24 @@ class ObjectTracker:
         """Return the last verified pose, else the last known one (hint, pose before a loss)."""
         return self.history[-1][1] if self.history else self.reference
 
+    def withdraw(self, result: TrackUpdate, reason: str) -> TrackUpdate:
+        """
+        Take back the pose the last :meth:`update` found; return the outcome to report instead.
+
+        For a pose found without a track (acquired, re-locked, a verified hint) that a caller
+        rules out afterwards, e.g. because it overlaps a better pose of another object found in
+        the same cloud (:func:`withdraw_overlapping`). The track goes back to the state it had
+        before that update (``ACQUIRING``, or ``LOST`` for a track that had a pose): no pose,
+        no places; the last known pose (``reference``) is kept, so the next cloud searches
+        again with it.
+        """
+        self.history.clear()
+        self.places = []
+        self.state = TrackState.ACQUIRING if self._state_before == TrackState.ACQUIRING \
+            else TrackState.LOST
+        return TrackUpdate(None, self.state, result.quality, f'{result.reason}; {reason}',
+                           cpu_seconds=result.cpu_seconds, lost=result.lost)
+
     def _start(self, stamp_ns: int, pose: np.ndarray, q: PoseQuality, reason: str,
                acquired: bool = False) -> TrackUpdate:
         self.history.clear()
@@ -1440,3 +1473,50 @@ class ObjectTracker:
         self.history.clear()
         self.state = TrackState.LOST
         return TrackUpdate(None, TrackState.LOST, q, reason, lost=True)
+
+
+def withdraw_overlapping(found: Sequence[Tuple[ObjectTracker, TrackUpdate]],
+                         verified: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
+                         max_share: float = 0.1) -> List[TrackUpdate]:
+    """
+    Withdraw the poses found in one cloud that overlap a better one.
+
+    Withdraw, among the poses several trackers found in one cloud without a track (global
+    searches, re-locks, verified hints: each checked against the poses verified before it,
+    in the order searched), those whose volume overlaps (:func:`overlap` > ``max_share``, at
+    each tracker's ``max_penetration`` depth) a pose of ``verified`` (tracked in this cloud)
+    or a better pose found (higher ``quality``): two parts cannot be in one place. Each
+    search's own check only sees the poses before it, one way (the share of the new part
+    inside them): a wrong pose found first (ball_link sunk into socket_base, quality 0.28,
+    half its volume inside the socket) did not stop the right pose found after it (the
+    socket's share inside the ball link 6 %), and both were published.
+
+    :param found: (tracker, its outcome of this cloud) pairs; outcomes without a pose are
+        returned as they are.
+    :param verified: (model, pose) of the objects tracked in this cloud (not withdrawn).
+    :return: the outcomes in the order of ``found``, withdrawn ones replaced by
+        :meth:`ObjectTracker.withdraw`'s.
+    """
+    out = [result for _, result in found]
+    kept: List[Tuple[TrackingModel, np.ndarray, Optional[float]]] = \
+        [(m, pose, None) for m, pose in verified]
+    ranked = sorted((i for i, (_, r) in enumerate(found) if r.pose is not None),
+                    key=lambda i: -(found[i][1].quality.quality if found[i][1].quality
+                                    else 0.0))
+    for i in ranked:
+        tracker, result = found[i]
+        depth = tracker.settings.max_penetration
+        shares = [(overlap(tracker.model, result.pose, m, pose, depth), m, q)
+                  for m, pose, q in kept]
+        worst = max(shares, key=lambda smq: smq[0], default=None)
+        if worst is not None and worst[0] > max_share:
+            share, other, q = worst
+            by = 'tracked in this cloud' if q is None else f'found in this cloud, quality ' \
+                f'{q:.2f}'
+            out[i] = tracker.withdraw(result, (
+                f'withdrawn: {100 * share:.0f} % of the volume overlaps {other.name} '
+                f'({by}) by more than {1e3 * depth:.0f} mm; not published'))
+            continue
+        kept.append((tracker.model, result.pose,
+                     result.quality.quality if result.quality else 0.0))
+    return out

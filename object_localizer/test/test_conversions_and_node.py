@@ -45,9 +45,10 @@ def test_track_status_fields():
     q = PoseQuality(inlier_fraction=0.9, visible_residual=0.0007, prediction_error=0.002,
                     quality=0.8, passed=True)
     header = Header(frame_id='cam', stamp=ns_to_stamp(5))
-    msg = track_status(header, 'peg', TrackState.TRACKING, q, 'tracking')
+    msg = track_status(header, 'peg', TrackState.TRACKING, q, 'tracking', 0.0123)
     assert msg.state == TrackStatus.TRACKING and msg.object_name == 'peg'
     assert msg.header == header and msg.reason == 'tracking'
+    assert msg.cpu_time == pytest.approx(0.0123)
     assert msg.inlier_fraction == pytest.approx(0.9) and msg.quality == pytest.approx(0.8)
     assert msg.visible_residual == pytest.approx(0.0007)
     none = track_status(header, 'peg', TrackState.ACQUIRING, None, 'acquisition failed')

@@ -655,3 +655,54 @@ def test_of_overlapping_places_the_clearly_best_supported_is_taken(arm):
     assert tracker.best_supported([(T, strong), (beside, close)]) is None
     off = ObjectTracker(model, TrackerSettings(min_support_ratio=0.0))
     assert off.best_supported([(beside, weak), (T, strong)]) is None
+
+
+def test_a_pose_found_in_the_same_cloud_inside_a_better_one_is_withdrawn():
+    """
+    Two parts cannot be in one place: of two poses found in one cloud, the worse is withdrawn.
+
+    The case: ball_link's search put it lying half inside socket_base (quality 0.28) and was
+    checked first; the socket's right pose, found after it, passed its own check (only its
+    share inside the ball link counts there, small), and both were published.
+    """
+    from object_localizer.tracking import overlap, penetration, PoseQuality, TrackUpdate, \
+        withdraw_overlapping
+    socket_mesh = load_obj(find_model('socket_base'))
+    socket = prepare_tracking_model(socket_mesh)
+    ball = prepare_tracking_model(load_obj(find_model('ball_link')))
+    rng = np.random.default_rng(4)
+    T = make_transform(rotation_about_axis([0.3, 1, 0.1], 2.2), [-0.05, 0.02, 0.55])
+    s = ObjectTracker(socket, TrackerSettings())
+    s.reset(T)                                   # a verified hint: found without a track
+    rs = s.update(SceneCloud(observe(socket_mesh, T, rng)), 1)
+    assert rs.pose is not None and rs.state == TrackState.TRACKING
+    # the ball link lying through the socket's top face, half its volume inside
+    sunk = T @ make_transform(rotation_about_axis([1, 0, 0], np.pi / 2), [0.0, 0.03, -0.02])
+    assert penetration(ball, sunk, socket, rs.pose, 0.005) > 0.3       # one way: large
+    assert penetration(socket, rs.pose, ball, sunk, 0.005) < 0.1       # the other: small
+    assert overlap(ball, sunk, socket, rs.pose, 0.005) > 0.3
+
+    def found(pose, quality):
+        b = ObjectTracker(ball, TrackerSettings())
+        b.state = TrackState.TRACKING
+        b.history.append((1, pose))
+        return b, TrackUpdate(pose, TrackState.TRACKING,
+                              PoseQuality(quality=quality, passed=True), 'acquired',
+                              acquired=True)
+    b, rb = found(sunk, 0.5 * rs.quality.quality)
+    out = withdraw_overlapping([(b, rb), (s, rs)])          # the worse one searched first
+    assert out[1] is rs and out[0].pose is None
+    assert 'withdrawn' in out[0].reason and 'overlaps socket_base' in out[0].reason
+    assert b.state == TrackState.ACQUIRING and not b.history and not b.places
+    # the better one wins whichever it is; a pose tracked in this cloud always wins
+    b, rb = found(sunk, 2.0 * rs.quality.quality)
+    out = withdraw_overlapping([(s, rs), (b, rb)])
+    assert out[1] is rb and out[0].pose is None and 'overlaps ball_link' in out[0].reason
+    assert s.state == TrackState.ACQUIRING and not s.history
+    b, rb = found(sunk, 1.0)
+    out = withdraw_overlapping([(b, rb)], verified=[(socket, rs.pose)])
+    assert out[0].pose is None and 'tracked in this cloud' in out[0].reason
+    # apart: both kept
+    b, rb = found(T @ make_transform(np.eye(3), [0.0, 0.25, 0.0]), 0.1)
+    out = withdraw_overlapping([(b, rb), (s, rs)])
+    assert out[0] is rb and out[1] is rs
