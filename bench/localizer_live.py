@@ -41,7 +41,7 @@ from stereo_manip_tools.bench_report import goal, write_report
 from stereo_manip_tools.conversions import pose_to_matrix, stamp_to_ns
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.processes import ExecutableProcess, make_node, process_cpu_seconds, \
-    shutdown_node, spin_until
+    shutdown_node, spin_until, wait_for_settled_graph
 
 #: a loss this close [s of cloud stamps] to the object's last status is censored, not a failure
 CENSOR_S = 3.0
@@ -119,6 +119,8 @@ def run(scene, mode, rate, seconds, frames, log, localizer_params=None):
         t0 = time.monotonic()
         if mode == 'triggered':
             spin_until(node, lambda: trigger.get_subscription_count() > 0, 30)
+            wait_for_settled_graph(node, ['synthetic_camera', 'stereo_depth_node',
+                                          'object_localizer'])
             for k in range(frames):
                 n0 = len(statuses[names[-1]])
                 trigger.publish(Empty())

@@ -554,7 +554,7 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
     from stereo_manip_tools.bag_io import get_message_class
     from stereo_manip_tools.conversions import stamp_to_ns
     from stereo_manip_tools.processes import ExecutableProcess, make_node, shutdown_node, \
-        spin_until
+        spin_until, wait_for_settled_graph
 
     live = stage.live_seconds > 0
     observer = make_node(f'demo_{stage.name}')
@@ -622,6 +622,9 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
                             for t, v in data.items()))
         else:
             spin_until(observer, lambda: trigger.get_subscription_count() > 0, 30.0)
+            # the first trigger only once every link of the graph is there (else its frame
+            # can be lost on the way: measured, the first peg frame had no pose and no status)
+            wait_for_settled_graph(observer, [s.node_name for s, _ in procs])
             t_start = time.monotonic()
             info['stopped_by_budget'] = False
             for k in range(stage.frames):

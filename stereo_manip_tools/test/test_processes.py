@@ -5,6 +5,7 @@ import subprocess
 import sys
 import time
 
+import pytest
 from stereo_manip_tools.processes import interrupt_then_kill, process_age_seconds
 
 
@@ -48,3 +49,30 @@ def test_process_age_is_the_time_since_the_process_started():
         child.wait()
     assert process_age_seconds('self') > 0.0
     assert process_age_seconds(2 ** 30) != process_age_seconds(2 ** 30)    # gone: NaN
+
+
+@pytest.mark.ros
+def test_the_graph_wait_returns_after_a_late_publisher_appears():
+    """A node's topics created after it joined the graph are waited for (first-trigger race)."""
+    import threading
+
+    from std_msgs.msg import Empty
+    from stereo_manip_tools.processes import make_node, shutdown_node, spin_until, \
+        wait_for_settled_graph
+    observer, late = make_node(), make_node('late_graph_node')
+    try:
+        assert spin_until(observer, lambda: 'late_graph_node' in [
+            n for n, _ in observer.get_node_names_and_namespaces()], 20.0)
+        # the publisher comes later than one settle period after the node was seen
+        timer = threading.Timer(0.9, lambda: late.create_publisher(Empty, 'late_topic', 1))
+        timer.start()
+        assert wait_for_settled_graph(observer, ['late_graph_node'], settle=0.6, timeout=20.0)
+        timer.join()
+        topics = [t for t, _ in observer.get_publisher_names_and_types_by_node(
+            'late_graph_node', '/')]
+        assert '/late_topic' in topics
+        # a node that is not there: not settled
+        assert not wait_for_settled_graph(observer, ['no_such_node'], settle=0.2, timeout=1.0)
+    finally:
+        shutdown_node(late)
+        shutdown_node(observer)
