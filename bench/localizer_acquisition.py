@@ -4,8 +4,9 @@ Benchmark: global acquisition (no initial pose) on the stereo clouds of every sy
 Data: every scene of ``stereo_depth.synthetic`` (peg_in_hole, peg_in_slot, revolute_pair,
 prismatic_pair, spherical_pair, primitives), ``--frames`` frames each spread over the scene's
 sequence and over scene seeds; each frame rendered as a stereo pair and run through the stereo
-pipeline the demo uses (``block_matching``, 160 disparities, node defaults) -> the organised
-point cloud of the left camera (partial views, stereo noise, fill at borders, table and the
+pipeline the demo uses (``block_matching`` over the scene's disparity band,
+``stereo_manip_bringup.demo.SCENE_DISPARITY_BANDS``: the scene's depth range; full resolution)
+-> the organised point cloud of the left camera (partial views, stereo noise, fill at borders, table and the
 other objects in view). Every object of the scene but the table is searched in the full cloud
 from nothing: one trial per (frame, object).
 
@@ -60,6 +61,7 @@ from object_localizer.symmetry import find_symmetries, symmetric_pose_error
 from object_localizer.verification import (observe_depth, sample_model_surface,
                                            score_pose_visibility)
 import open3d as o3d
+from stereo_manip_bringup.demo import SCENE_DISPARITY_BANDS
 from stereo_manip_tools.bench_report import goal, results_dir, write_report
 from stereo_manip_tools.mesh_io import find_model, load_obj
 
@@ -86,10 +88,11 @@ def stereo_frames(cache: Path, frames_per_scene: int):
     cache.mkdir(parents=True, exist_ok=True)
     for scene_name in SCENES:
         n_frames = make_scene(scene_name).n_frames
+        dmin, count = SCENE_DISPARITY_BANDS[scene_name]
         for k in range(frames_per_scene):
             seed = k % 3
             frame = int((k * n_frames) // frames_per_scene + 7 * seed) % n_frames
-            path = cache / f'{scene_name}_s{seed}_f{frame}.npz'
+            path = cache / f'{scene_name}_s{seed}_f{frame}_d{dmin}_{count}.npz'
             if path.exists():
                 data = np.load(path, allow_pickle=True)
                 camera = data['camera'].item()
@@ -99,7 +102,7 @@ def stereo_frames(cache: Path, frames_per_scene: int):
                 continue
             left, right, truth = render(scene_name, frame, seed=seed)
             cam = truth['camera']
-            disp = compute_disparity(left, right, 'block_matching', 160)
+            disp = compute_disparity(left, right, 'block_matching', count, min_disparity=dmin)
             pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'],
                                       cam['baseline'])
             # the baseline lets the visibility score know what stereo can measure
@@ -478,7 +481,9 @@ def write(args, records, summary, per_object, timing, node=None):
                      'timing_exclusive_lock, when present, holds trials re-timed by '
                      '--timing-only and the time goals use them'),
                  records=records,
-                 stereo='block_matching, 160 disparities (the demo stereo node settings)')
+                 stereo='block_matching over each scene\'s disparity band (min_disparity, '
+                 'count): ' + str(SCENE_DISPARITY_BANDS) + ' (the demo stereo node settings, '
+                 'stereo_manip_bringup.demo.SCENE_DISPARITY_BANDS), full resolution')
 
 
 def timing_only(args, trials, models):

@@ -144,9 +144,19 @@ LIVE_PARAMETERS: Dict[str, Dict[str, Any]] = {
     'joint_estimator_node': {'estimate_every': 30},
 }
 
+#: the stereo node's disparity band per synthetic scene, (min_disparity, max_disparity =
+#: count): from the scene's depth range at fx 600 px, baseline 0.10 m (60 / z px), 48 px =
+#: 1.25 m behind everything. Nearest object point over each sequence: peg_in_hole 0.391 m
+#: (153.5 px), peg_in_slot 0.412 m (145.5), revolute_pair 0.352 m (170.5: its nearest brick
+#: corner, in a few frames, is 3 px beyond 167), prismatic_pair 0.386 m (155.6),
+#: spherical_pair 0.294 m (204.3: the swinging ball_link; 160 px from 0 stop at 0.375 m),
+#: primitives 0.531 m (113.0). The demo runs the first three of its stages' scenes.
 SCENE_DISPARITY_BANDS: Dict[str, Tuple[int, int]] = {
-    'peg_in_hole': (48, 112),      # (min_disparity, max_disparity = count): 48..159 px
+    'peg_in_hole': (48, 112),      # 48..159 px
+    'peg_in_slot': (48, 112),      # 48..159 px
     'revolute_pair': (48, 120),    # 48..167 px
+    'prismatic_pair': (48, 112),   # 48..159 px
+    'spherical_pair': (48, 160),   # 48..207 px
     'primitives': (48, 80),        # 48..127 px
 }
 
