@@ -17,7 +17,8 @@ Stages (each hypothesis keeps the figures of every stage, see :class:`Hypothesis
 
 1. **Rough** -- ``method='ppf'`` (default): point-pair-feature voting (Drost et al. 2010,
    :mod:`object_localizer.ppf`) over the scene without its dominant plane, sampled at 5 % of
-   the model diameter (at most 1 cm); pose clusters ranked by votes (``max_rough`` kept).
+   the model diameter (at most 1 cm); pose clusters ranked by votes (``max_rough`` kept per
+   round; ``rough_rounds`` rounds with different seeds, pooled).
    ``method='fpfh'``: FPFH matching + RANSAC (as
    :func:`object_localizer.localization.rough_localize`) run ``fpfh_attempts`` times with
    different seeds, one hypothesis each.
@@ -508,7 +509,7 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
                    skip_margin: float = 0.5, prune_margin: float = float('inf'),
                    equivalent_distance: float = 0.002,
                    reference_stride: int = 5, max_references: int = 2500,
-                   fpfh_attempts: int = 4,
+                   fpfh_attempts: int = 4, rough_rounds: int = 2,
                    rough_tolerance: Optional[float] = None,
                    fine_tolerance: float = 0.004,
                    final_check: bool = False,
@@ -550,6 +551,13 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         score); ``inf``: every refined hypothesis goes through every stage.
     :param max_slide: best refined hypotheses whose position is then searched along the model
         axes by the visibility score (and refined again when it moved).
+    :param rough_rounds: PPF: voting rounds with different seeds (``seed``, ``seed + 7919``,
+        ...), their rough hypotheses pooled before the verification. The seed sets the
+        reference points and the dominant-plane fit; one round missed a visible peg in 3 of 4
+        seeds on some stereo clouds (the truth never among its hypotheses). Measured on the
+        stereo benchmark's 210 trials, same clouds and seeds: 2 rounds -> success 195 vs 191
+        of 210, `search` failures 1 vs 7, wall time per object median / p95 0.32 / 0.46 s vs
+        0.27 / 0.41 s (a round's voting is 65-90 ms; the refinement is the costly part).
     :param rough_tolerance: depth tolerance [m] of the rough verification (default: 1.5 x
         the PPF step, at least 6 mm).
     :param fine_tolerance: depth tolerance [m] of the final verification.
@@ -576,7 +584,10 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
     scene = scene_points if isinstance(scene_points, AcquisitionScene) else \
         prepare_acquisition_scene(scene_points, scene_normals, camera)
     if method == 'ppf':
-        rough = _rough_ppf(model, scene, seed, max_rough, reference_stride, max_references)
+        rough = []
+        for k in range(max(int(rough_rounds), 1)):
+            rough += _rough_ppf(model, scene, seed + 7919 * k, max_rough, reference_stride,
+                                max_references)
     else:
         rough = _rough_fpfh(model, scene, seed, fpfh_attempts)
     if not rough:
