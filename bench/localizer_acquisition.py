@@ -6,9 +6,9 @@ prismatic_pair, spherical_pair, primitives), ``--frames`` frames each spread ove
 sequence and over scene seeds; each frame rendered as a stereo pair and run through the stereo
 pipeline the demo uses (``block_matching`` over the scene's disparity band,
 ``stereo_manip_bringup.demo.SCENE_DISPARITY_BANDS``: the scene's depth range; full resolution)
--> the organised point cloud of the left camera (partial views, stereo noise, fill at borders, table and the
-other objects in view). Every object of the scene but the table is searched in the full cloud
-from nothing: one trial per (frame, object).
+-> the organised point cloud of the left camera (partial views, stereo noise, fill at borders,
+table and the other objects in view). Every object of the scene but the table is searched in
+the full cloud from nothing: one trial per (frame, object).
 
 Methods, all on the same clouds in this run:
 - ``ppf``: ours, point-pair-feature voting (Drost et al. 2010) -> visibility verification ->
@@ -481,7 +481,7 @@ def write(args, records, summary, per_object, timing, node=None):
                      'timing_exclusive_lock, when present, holds trials re-timed by '
                      '--timing-only and the time goals use them'),
                  records=records,
-                 stereo='block_matching over each scene\'s disparity band (min_disparity, '
+                 stereo="block_matching over each scene's disparity band (min_disparity, "
                  'count): ' + str(SCENE_DISPARITY_BANDS) + ' (the demo stereo node settings, '
                  'stereo_manip_bringup.demo.SCENE_DISPARITY_BANDS), full resolution')
 

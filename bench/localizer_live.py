@@ -266,6 +266,7 @@ def summarise(runs, load_before, args):
              sum(o['published'] == 0 for o in objs)),
         goal('nodes_died', 0, '==', sum(len(r['dead_nodes']) for r in runs)),
     ]
+
     def spread(v):
         return {'median': float(np.median(v)) if v else None,
                 'p95': float(np.percentile(v, 95)) if v else None,

@@ -63,10 +63,11 @@ def test_the_graph_wait_returns_after_a_late_publisher_appears():
     try:
         assert spin_until(observer, lambda: 'late_graph_node' in [
             n for n, _ in observer.get_node_names_and_namespaces()], 20.0)
-        # the publisher comes later than one settle period after the node was seen
-        timer = threading.Timer(0.9, lambda: late.create_publisher(Empty, 'late_topic', 1))
+        # the publisher comes after the node was seen, within one settle period: a wait that
+        # returned once the node is in the graph (``wait_for_node``) would miss it
+        timer = threading.Timer(0.4, lambda: late.create_publisher(Empty, 'late_topic', 1))
         timer.start()
-        assert wait_for_settled_graph(observer, ['late_graph_node'], settle=0.6, timeout=20.0)
+        assert wait_for_settled_graph(observer, ['late_graph_node'], settle=1.5, timeout=20.0)
         timer.join()
         topics = [t for t, _ in observer.get_publisher_names_and_types_by_node(
             'late_graph_node', '/')]
