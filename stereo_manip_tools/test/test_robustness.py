@@ -129,3 +129,34 @@ def test_load_obj_refuses_a_fifo(tmp_path):
     os.mkfifo(fifo)
     with pytest.raises(ValueError, match='FIFO'):
         load_obj(fifo)
+
+
+@pytest.mark.process
+@pytest.mark.parametrize('signal_name', ['SIGTERM', 'SIGINT'])
+def test_a_spinning_node_ends_cleanly_on_a_shutdown_signal(signal_name):
+    """
+    ``spin_until_shutdown`` ends a node's process on SIGTERM (docker stop, launch) and SIGINT.
+
+    Repeated: with ``rclpy.spin`` (no timeout) a peer sent SIGTERM stayed in its wait in about
+    1 of 6 runs.
+    """
+    import signal
+    import subprocess
+    import sys
+    code = ('import rclpy\n'
+            'from stereo_manip_tools.robustness import spin_until_shutdown\n'
+            'rclpy.init()\n'
+            'node = rclpy.create_node("shutdown_signal_probe")\n'
+            'timer = node.create_timer(0.05, lambda: print("ready", flush=True))\n'
+            'spin_until_shutdown(node)\n')     # 'ready' once it spins
+    for _ in range(4):
+        proc = subprocess.Popen([sys.executable, '-c', code], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT)
+        try:
+            assert proc.stdout.readline() == b'ready\n'
+            proc.send_signal(getattr(signal, signal_name))
+            assert proc.wait(10) == 0, proc.stdout.read().decode()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(5)
