@@ -247,6 +247,7 @@ def main() -> None:
 
 def summarise(runs, load_before, args):
     """Goals from the runs; a loss never re-acquired leaves the CPU goal unmeasured (NaN)."""
+    from localizer_graph_cpu import spread     # median / p95 / max / n (NaN when empty)
     objs = [o for r in runs for o in r['objects'].values()]
     over = sum(o['published_over_5mm'] for o in objs)
     recov = [x for o in objs for x in o['recovery_cpu_s']]
@@ -266,11 +267,6 @@ def summarise(runs, load_before, args):
              sum(o['published'] == 0 for o in objs)),
         goal('nodes_died', 0, '==', sum(len(r['dead_nodes']) for r in runs)),
     ]
-
-    def spread(v):
-        return {'median': float(np.median(v)) if v else None,
-                'p95': float(np.percentile(v, 95)) if v else None,
-                'max': float(max(v)) if v else None, 'n': len(v)}
     write_report(args.get('out', 'localizer_live'), goals, runs=runs, losses=losses,
                  unrecovered_at_end=unrecovered, censored_at_end=censored,
                  recovery_cpu_s=spread(recov),
