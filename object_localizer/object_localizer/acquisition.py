@@ -357,13 +357,33 @@ def prepare_acquisition_scene(scene_points: np.ndarray, scene_normals: Optional[
     return AcquisitionScene(P, N, as_camera(camera), float(stereo_baseline))
 
 
+def _unexplained(cloud: o3d.geometry.PointCloud, exclude: Optional[np.ndarray],
+                 radius: float) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return the points of ``cloud`` that no other object explains.
+
+    The points (K, 3) and normals (K, 3) of ``cloud`` farther than ``radius`` [m] from every
+    row of ``exclude`` (M, 3) [m, same frame]; all of them when ``exclude`` is empty.
+    """
+    S, SN = np.asarray(cloud.points), np.asarray(cloud.normals)
+    if exclude is None or not len(exclude) or not len(S):
+        return S, SN
+    from scipy.spatial import cKDTree
+    near = cKDTree(np.asarray(exclude, dtype=float)).query(
+        S, k=1, distance_upper_bound=radius)[0] <= radius
+    return S[~near], SN[~near]
+
+
 def _rough_ppf(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
                max_hypotheses: int, reference_stride: int,
-               max_references: int = 2500) -> List[tuple]:
+               max_references: int = 2500, exclude: Optional[np.ndarray] = None,
+               exclude_radius: float = 0.0) -> List[tuple]:
     step = model.ppf.distance_step
     search = scene.cloud(step, drop_plane=True, min_plane_extent=2.0 * model.diameter,
                          seed=seed)
-    S, SN = np.asarray(search.points), np.asarray(search.normals)
+    S, SN = _unexplained(search, exclude, exclude_radius)
+    if len(S) < 10:
+        return []
     # bounded work: voting costs references x neighbours and the clustering grows with the
     # square of the votes' peaks, so a huge cloud (a million random points) gets a longer
     # stride; the synthetic scenes have 900-1200 references at stride 5 (unchanged)
@@ -375,10 +395,17 @@ def _rough_ppf(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
 
 
 def _rough_fpfh(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
-                attempts: int) -> List[tuple]:
+                attempts: int, exclude: Optional[np.ndarray] = None,
+                exclude_radius: float = 0.0) -> List[tuple]:
     t = model.template
     search = scene.cloud(t.voxel_size, drop_plane=True, min_plane_extent=2.0 * model.diameter,
                          seed=seed)
+    if exclude is not None and len(exclude):
+        S, SN = _unexplained(search, exclude, exclude_radius)
+        if len(S) < 10:
+            return []
+        search = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(S))
+        search.normals = o3d.utility.Vector3dVector(SN)
     feats = fpfh_features(search, t.voxel_size)
     return [match_features_ransac(t, search, feats, seed=seed + k, max_iterations=100000)
             for k in range(attempts)]
@@ -513,7 +540,9 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
                    rough_tolerance: Optional[float] = None,
                    fine_tolerance: float = 0.004,
                    final_check: bool = False,
-                   check_settings: Optional[TrackerSettings] = None) -> List[Hypothesis]:
+                   check_settings: Optional[TrackerSettings] = None,
+                   exclude_points: Optional[np.ndarray] = None,
+                   exclude_radius: float = 0.005) -> List[Hypothesis]:
     """
     Find ``model`` in a scene cloud with no initial pose.
 
@@ -572,6 +601,10 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         displaced by 7 mm (``bench/localizer_accuracy.py``: 0.867 vs 0.917 within 1 mm) and
         let the slot block turned onto its side win on stereo clouds (README, Figures).
     :param check_settings: thresholds of that check (default ``TrackerSettings()``).
+    :param exclude_points: (M, 3) [m, optical frame] surface samples of other objects already
+        verified in this cloud: the scene points within ``exclude_radius`` [m] of them do not
+        vote in the rough stage (a part of the same shape as one already found is then looked
+        for in the rest of the scene; verification and refinement still see every point).
     :return: hypotheses, best first (refined ones by ``check.quality`` x ``score`` when
         ``final_check``, else by ``score``); empty if the rough stage found none.
     :raises ValueError: unknown method, unusable scene.
@@ -587,9 +620,9 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         rough = []
         for k in range(max(int(rough_rounds), 1)):
             rough += _rough_ppf(model, scene, seed + 7919 * k, max_rough, reference_stride,
-                                max_references)
+                                max_references, exclude_points, exclude_radius)
     else:
-        rough = _rough_fpfh(model, scene, seed, fpfh_attempts)
+        rough = _rough_fpfh(model, scene, seed, fpfh_attempts, exclude_points, exclude_radius)
     if not rough:
         return []
     observed = scene.observed()

@@ -71,6 +71,7 @@ class ObjectLocalizerNode(Node):
         'max_prediction_error': 'max_prediction_error',
         'min_edge_fraction': 'min_edge_fraction',
         'max_penetration': 'max_penetration',
+        'explained_radius': 'explained_radius',
         'stereo_baseline': 'stereo_baseline',
         'static_recheck_period': 'static_recheck_period',
         'relock_window': 'relock_window',
@@ -143,6 +144,10 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('max_penetration', 0.005,
                                _float('a pose deeper than this [m] inside another verified '
                                       'object (10 % of its volume) is rejected', 0.0005, 0.1))
+        self.declare_parameter('explained_radius', 0.005,
+                               _float('the global search leaves out the scene points within '
+                                      'this [m] of identical parts verified in the same cloud '
+                                      '(0: off)', 0.0, 0.05))
         self.declare_parameter('static_recheck_period', 1.0,
                                _float('re-verification period of static objects [s of cloud '
                                       'stamps]', 0.0, 3600.0))

@@ -140,6 +140,11 @@ class TrackerSettings:
     :ivar max_penetration: a pose that puts more than 10 % of the model's volume deeper than
         this [m] inside another object's verified pose is rejected (physically impossible; the
         typical wrong pose of a part lying on a bigger one).
+    :ivar explained_radius: the global search's rough stage leaves out the scene points within
+        this [m] of the surface of an identical part verified in the same cloud (their votes
+        only find that part again: after revolute_pair's loop jump, link_arm's search found only
+        the place of its identical twin link_base, tracked there, and failed the penetration
+        check for a cloud); verification and refinement still see every point. 0: off.
     :ivar ambiguity_distance: acquisition results farther apart than this (ADD-S [m]) are
         distinct solutions; when several pass the check the object is ambiguous (identical
         parts) and is only published if the last known pose is clearly nearer one of them, or
@@ -220,6 +225,7 @@ class TrackerSettings:
     min_view_cos: float = 0.3
     min_visible_samples: int = 30
     max_penetration: float = 0.005
+    explained_radius: float = 0.005
     ambiguity_distance: float = 0.005
     min_support_ratio: float = 1.25
     twin_reacquire_radius: float = 0.02
@@ -902,14 +908,23 @@ class TrackUpdate:
     lost: bool = False
 
 
-#: Global acquisition: (model, scene points (N, 3) [m], seed) -> candidate poses (best first).
-Acquirer = Callable[[TrackingModel, np.ndarray, int], list]
+#: Global acquisition: (model, scene points (N, 3) [m], seed, explained) -> candidate poses
+#: (best first). ``explained``: None, or (points (M, 3) [m, scene frame], radius [m]): the
+#: surface samples of objects already verified in the cloud; scene points within the radius of
+#: them are left out of the search (they only find those objects again).
+Acquirer = Callable[[TrackingModel, np.ndarray, int, Optional[Tuple[np.ndarray, float]]], list]
 
 
-def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int) -> list:
+def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int,
+                       explained: Optional[Tuple[np.ndarray, float]] = None) -> list:
     """Global acquisition with ``localization.localize`` (FPFH + RANSAC, then ICP)."""
     P = np.asarray(points, dtype=float)
-    return [localize(model.template, P[np.all(np.isfinite(P), axis=1)], seed=seed).pose]
+    P = P[np.all(np.isfinite(P), axis=1)]
+    if explained is not None and len(explained[0]):
+        from scipy.spatial import cKDTree
+        d = cKDTree(explained[0]).query(P, k=1, distance_upper_bound=explained[1])[0]
+        P = P[d > explained[1]]
+    return [localize(model.template, P, seed=seed).pose]
 
 
 def make_acquirer(method: str, max_candidates: int = 6,
@@ -947,7 +962,8 @@ def make_acquirer(method: str, max_candidates: int = 6,
 
     last: list = [None, None, None]     # the last cloud's points array, (camera, baseline), scene
 
-    def acquire(model: TrackingModel, points: np.ndarray, seed: int) -> list:
+    def acquire(model: TrackingModel, points: np.ndarray, seed: int,
+                explained: Optional[Tuple[np.ndarray, float]] = None) -> list:
         if model.acquisition is None:
             model.acquisition = acquisition.prepare_acquisition_model(model.mesh,
                                                                       check_model=model)
@@ -960,8 +976,10 @@ def make_acquirer(method: str, max_candidates: int = 6,
             scene = acquisition.prepare_acquisition_scene(
                 P[np.all(np.isfinite(P), axis=1)], camera=view[0], stereo_baseline=view[1])
             last[:] = [points, view, scene]
+        exclude, radius = explained if explained is not None else (None, 0.0)
         hyps = acquisition.acquire_object(model.acquisition, scene, method=method, seed=seed,
-                                          time_budget_s=time_budget_s)
+                                          time_budget_s=time_budget_s, exclude_points=exclude,
+                                          exclude_radius=radius)
         return [h.pose for h in hyps[:max_candidates]]
     return acquire
 
@@ -1165,7 +1183,8 @@ class ObjectTracker:
         self.acquisitions += 1
         best: Optional[Tuple[np.ndarray, PoseQuality]] = None
         passed: list = []
-        for candidate in self.acquirer(self.model, scene.points, s.seed + self.acquisitions):
+        for candidate in self.acquirer(self.model, scene.points, s.seed + self.acquisitions,
+                                       self._explained()):
             pose, q = self._refine_and_check(scene, np.asarray(candidate, dtype=float), None,
                                              acquisition=True)
             if q.passed:
@@ -1237,6 +1256,23 @@ class ObjectTracker:
                            f'{len(distinct)} distinct poses fit the cloud '
                            f'({1e3 * min(gaps):.0f} mm or more apart) and no known pose tells '
                            'them apart; not published')
+
+    def _explained(self) -> Optional[Tuple[np.ndarray, float]]:
+        """
+        Return what the identical parts verified in this cloud explain, for the global search.
+
+        Their surface samples (M, 3) [m, scene frame] and ``explained_radius``; None when there
+        are none or it is off. Only twins: another object's points would also remove the
+        contact region of a part resting on it (the slider carriage on its rail: with the
+        rail's points left out, the carriage's search lost the right place and a pose 13 mm off
+        was the only one to pass, published where two distinct poses had left it ambiguous).
+        """
+        r = self.settings.explained_radius
+        twins = {id(t.model) for t in self.twins}
+        verified = [(m, T) for m, T in self._others if id(m) in twins]
+        if r <= 0 or not verified:
+            return None
+        return np.vstack([m.points @ T[:3, :3].T + T[:3, 3] for m, T in verified]), r
 
     def _distinct(self, passed: list) -> list:
         """Return the (pose, quality) pairs not equivalent to a better one (ADD-S)."""

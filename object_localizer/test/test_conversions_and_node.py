@@ -151,7 +151,7 @@ def test_tracked_objects_are_published_before_a_lost_ones_search(ros_node):
             return _orig(*a, **kw)
         tracker.update = update
 
-        def no_candidates(model, points, seed, _name=name):
+        def no_candidates(model, points, seed, explained=None, _name=name):
             searched_with.append([m.name for m, _ in node.trackers[_name]._others])
             events.append((_name, 'search', None))
             return []
@@ -195,7 +195,7 @@ def _lose_link_base_with_slow_searches(meshes, truth, node):
 
     searches = []
 
-    def search(model, points, seed):      # a search that finds nothing in 0.3 s of CPU
+    def search(model, points, seed, explained=None):  # finds nothing in 0.3 s of CPU
         import time
         searches.append(seed)
         t0 = time.process_time()

@@ -98,7 +98,8 @@ def test_a_part_beyond_the_icp_reach_is_reacquired_locally_without_a_global_sear
         settings = TrackerSettings(max_distance=0.002, relock_shift=shift,
                                    relock_turn=0.15 if shift else 0.0)
         tracker = ObjectTracker(base, settings,
-                                acquirer=lambda m, p, seed: calls.append(seed) or [])
+                                acquirer=lambda m, p, seed, explained=None:
+                                calls.append(seed) or [])
         tracker.reset(T0)
         first = tracker.update(_cloud(meshes, clouds[0], 3), 0)
         assert first.pose is not None and add_s(first.pose, T0, base.points) < 0.001
@@ -135,7 +136,7 @@ def test_identical_part_lost_next_to_its_verified_twin_keeps_its_name(bricks):
     cloud = _cloud(meshes, {'link_base': B1, 'link_arm': A1}, 9)
 
     def lost_base():
-        t = ObjectTracker(base, settings, acquirer=lambda m, p, seed: [])
+        t = ObjectTracker(base, settings, acquirer=lambda m, p, seed, explained=None: [])
         t.reset(B0)
         assert t.update(_cloud(meshes, {'link_base': B0, 'link_arm': A1}, 8), 0).pose \
             is not None

@@ -126,7 +126,7 @@ def test_after_the_loop_a_wrong_candidate_is_never_published(loop):
     """
     models, (cloud_a, truth_a), (cloud_b, truth_b) = loop
     offered = []
-    trackers = _trackers(models, truth_a, lambda m, p, seed: list(offered))
+    trackers = _trackers(models, truth_a, lambda m, p, seed, explained=None: list(offered))
     before = _update(trackers, cloud_a, 0)
     assert add_s(before['peg'].pose, truth_a['peg'], models['peg'].points) < WRONG
     wrong_pose = band_limit_pose(cloud_b)

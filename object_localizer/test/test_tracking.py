@@ -114,7 +114,7 @@ def test_a_wrong_hint_is_not_trusted(arm):
     T = moving_pose(0)
     calls = []
 
-    def acquirer(m, points, seed):
+    def acquirer(m, points, seed, explained=None):
         calls.append(seed)
         return [T @ make_transform(rotation_about_axis([0, 1, 0], 0.02), [0.002, 0, 0])]
     tracker = ObjectTracker(model, TrackerSettings(), acquirer=acquirer)
@@ -136,7 +136,7 @@ def test_loss_is_reported_and_the_object_reacquired(arm):
     rng = np.random.default_rng(7)
     candidates = []
     tracker = ObjectTracker(model, TrackerSettings(),
-                            acquirer=lambda m, p, seed: list(candidates))
+                            acquirer=lambda m, p, seed, explained=None: list(candidates))
     tracker.reset(moving_pose(0))
     assert tracker.update(observe(mesh, moving_pose(0), rng), 0).pose is not None
     jumped = make_transform(np.eye(3), [0.15, 0.0, 0.0]) @ moving_pose(1)
@@ -161,7 +161,7 @@ def test_a_briefly_lost_track_is_relocked_at_its_last_verified_pose(arm):
     mesh, model = arm
     calls = []
 
-    def acquirer(m, p, seed):
+    def acquirer(m, p, seed, explained=None):
         calls.append(seed)
         return []
     back = moving_pose(1)
@@ -188,7 +188,7 @@ def test_a_briefly_lost_track_is_relocked_at_its_last_verified_pose(arm):
 def test_nothing_is_published_when_the_object_is_gone(arm):
     mesh, model = arm
     rng = np.random.default_rng(8)
-    tracker = ObjectTracker(model, TrackerSettings(), acquirer=lambda m, p, seed: [
+    tracker = ObjectTracker(model, TrackerSettings(), acquirer=lambda m, p, seed, explained=None: [
         moving_pose(0)])
     tracker.reset(moving_pose(0))
     assert tracker.update(observe(mesh, moving_pose(0), rng), 0).pose is not None
@@ -263,6 +263,37 @@ def test_unusable_clouds_raise_clear_errors(arm):
         tracker.update(np.full((50, 3), np.nan), 0)
 
 
+def test_the_search_is_given_only_what_verified_twins_explain():
+    """
+    A lost brick's global search gets the surface samples of its verified twin, not others'.
+
+    link_arm's search, with link_base verified in the cloud, is handed link_base's model
+    samples at its pose and ``explained_radius``; an object of another shape verified in the
+    same cloud (the peg) is not handed on; ``explained_radius`` 0 hands nothing.
+    """
+    models, truth, cloud, _ = _two_bricks()
+    peg = prepare_tracking_model(load_obj(find_model('peg')))
+    given = []
+
+    def search(model, points, seed, explained=None):
+        given.append(explained)
+        return []
+    for radius in (0.005, 0.0):
+        trackers = _hinted_twin_trackers(models, search, None)
+        arm = trackers['link_arm']
+        arm.settings = replace(arm.settings, explained_radius=radius)
+        others = [(models['link_base'], truth['link_base']), (peg, truth['link_arm'])]
+        arm.update(cloud, 0, others)
+        if radius == 0.0:
+            assert given[-1] is None
+            continue
+        samples, r = given[-1]
+        T = truth['link_base']
+        expected = models['link_base'].points @ T[:3, :3].T + T[:3, 3]
+        assert r == radius and samples.shape == expected.shape
+        np.testing.assert_allclose(samples, expected)
+
+
 def _two_bricks():
     """Return models, true poses, a stereo-like cloud and a global search of the two bricks."""
     meshes = {n: load_obj(find_model(n)) for n in ('link_base', 'link_arm')}
@@ -274,7 +305,7 @@ def _two_bricks():
                        for i, (n, T) in enumerate(truth.items())])
     cloud = cloud + rng.normal(scale=0.0005, size=cloud.shape)
 
-    def both_bricks(model, points, seed):       # what a global search returns: either brick
+    def both_bricks(model, points, seed, explained=None):   # a global search: either brick
         other = 'link_arm' if model.name == 'link_base' else 'link_base'
         # the other brick's pose expressed for this model (same shape, different origin)
         return [truth[other] @ _origin_shift(models[other], model), truth[model.name]]
@@ -459,7 +490,7 @@ def _search_then_name(trackers, cloud, accept_uncertain=False):
 
 def _one_place_each(models, truth):
     """Each part's search finds only the OTHER brick (no single search sees both places)."""
-    def search(model, points, seed):
+    def search(model, points, seed, explained=None):
         other = 'link_arm' if model.name == 'link_base' else 'link_base'
         return [truth[other] @ _origin_shift(models[other], model)]
     return search
@@ -569,7 +600,7 @@ def test_a_reacquired_track_keeps_its_velocity_on_a_slow_graph(arm):
         rng = np.random.default_rng(21)
         candidates = []
         tracker = ObjectTracker(model, TrackerSettings(relock_window=0.0, motion_memory=memory),
-                                acquirer=lambda m, p, seed: list(candidates))
+                                acquirer=lambda m, p, seed, explained=None: list(candidates))
         tracker.reset(pose_at(0.0))
         for t in (0.0, 0.1, 0.7):       # the prediction, then the extrapolated start
             res = tracker.update(observe(mesh, pose_at(t), rng), int(t * 1e9))
@@ -624,7 +655,7 @@ def test_a_peg_slid_into_the_hole_along_itself_is_slid_back():
     errors = {}
     for step in (0.0, 0.004):
         tracker = ObjectTracker(peg, TrackerSettings(slide_min_step=step),
-                                acquirer=lambda m, p, seed: [])
+                                acquirer=lambda m, p, seed, explained=None: [])
         tracker.reset(deeper)
         res = tracker.update(cloud, 0, others=[(block, truth['poses']['hole_block'])])
         assert res.pose is not None, res.reason
