@@ -20,7 +20,8 @@ Methods, all on the same clouds in this run:
 
 The node path, in the same run on the same clouds (``node``; ``--no-node`` skips it): each
 cloud once through an in-process ``ObjectLocalizerNode`` (its defaults, the scene's objects as
-``models``, no initial poses, the left CameraInfo of the cloud's frame) -- what a user gets
+``models``, no initial poses, the left CameraInfo of the cloud's frame; the cloud as the demo's
+stereo node publishes it: every 2nd pixel, ``--node-decimation``) -- what a user gets
 from a node started on that view: the global search, the tracker's ICP and quality check, the
 ambiguity and identical-part rules, the overlap rule between objects found in one cloud. Per
 object: a pose published (scored like the others, and a wrong one = ADD-S over 5 mm) or the
@@ -258,14 +259,30 @@ def pose_error(pose, name, poses, symmetries, sym_sets):
     return e_t, e_r, strict
 
 
-def node_pass(trials, poses_of, models, symmetries, sym_sets):
+def published_cloud(points: np.ndarray, decimation: int) -> np.ndarray:
+    """
+    Return the cloud the stereo node of the graph publishes from the grid ``points``.
+
+    Every ``decimation``-th pixel in both directions of the (H, W, 3) grid [m], only the finite
+    points, in raster order (an unorganised cloud): the stereo node's ``point_decimation`` with
+    ``organized_cloud`` false, as the demo runs it.
+    """
+    P = np.asarray(points)
+    if P.ndim == 3:
+        P = P[::decimation, ::decimation]
+    P = P.reshape(-1, 3)
+    return P[np.all(np.isfinite(P), axis=1)]
+
+
+def node_pass(trials, poses_of, models, symmetries, sym_sets, decimation=2):
     """Every cloud of the trials once through the node (:func:`node_outcomes`), scored."""
     rows, clouds = [], {}
     for i, (scene_name, seed, frame, _, pts, camera, _) in enumerate(trials):
         clouds.setdefault((scene_name, seed, frame), (pts, camera, poses_of[i]))
     per_cloud = []
     for (scene_name, seed, frame), (pts, camera, poses) in clouds.items():
-        outcomes, cpu, wall = node_outcomes(pts, camera, sorted(poses))
+        outcomes, cpu, wall = node_outcomes(published_cloud(pts, decimation), camera,
+                                            sorted(poses))
         per_cloud.append({'scene': scene_name, 'seed': seed, 'frame': frame,
                           'objects': len(poses), 'cpu_s': cpu, 'wall_s': wall})
         for name in sorted(poses):
@@ -348,6 +365,11 @@ def main() -> None:
     parser.add_argument('--final-check', action='store_true',
                         help="acquire_object(final_check=True): polish by the tracker's ICP and "
                              "rank by the tracker's check x the pixel score")
+    parser.add_argument('--node-decimation', type=int, default=2,
+                        help="the node path's clouds: every n-th pixel of the stereo grid, as "
+                             "the stereo node's point_decimation publishes them (the demo's "
+                             '2; 1: full resolution, which the node voxel-downsamples to its '
+                             'max_points)')
     parser.add_argument('--no-node', action='store_true',
                         help='skip the node path (every cloud through ObjectLocalizerNode)')
     parser.add_argument('--rewrite', action='store_true',
@@ -434,7 +456,9 @@ def main() -> None:
                             if any(r['object'] == name and m in r for r in records)}
     node = None
     if not args.no_node:
-        node = node_pass(trials, poses_of, models, symmetries, sym_sets)
+        node = node_pass(trials, poses_of, models, symmetries, sym_sets,
+                         args.node_decimation)
+        node['decimation'] = args.node_decimation
     write(args, records, summary, per_object, timing=None, node=node)
 
 
