@@ -61,7 +61,8 @@ from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
 __all__ = ['TrackState', 'TrackerSettings', 'TrackingModel', 'PoseQuality', 'TrackUpdate',
            'SceneCloud', 'prepare_tracking_model', 'predict_constant_velocity', 'carried_motion',
-           'track_icp', 'check_pose', 'ObjectTracker', 'Acquirer', 'make_acquirer',
+           'track_icp', 'check_pose', 'refine_and_check', 'slide_along_axes', 'ObjectTracker',
+           'Acquirer', 'make_acquirer',
            'acquire_rough_fine', 'same_shape', 'symmetric_distance']
 
 
@@ -908,6 +909,78 @@ class TrackUpdate:
     lost: bool = False
 
 
+def refine_and_check(model: TrackingModel, scene: SceneCloud, start: np.ndarray,
+                     settings: TrackerSettings, prediction: Optional[np.ndarray] = None,
+                     others: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
+                     acquisition: bool = False, refine: bool = True
+                     ) -> Tuple[np.ndarray, PoseQuality]:
+    """
+    Refine ``start`` (4x4 model -> sensor) by the tracking ICP and check the result.
+
+    The ICP runs on the scene points near the pose (within reach of the model's centre and in
+    its bounding box grown by the ICP reach); the check (:func:`check_pose`) on the points on
+    the rays through the object. ``refine`` false: ``start`` itself is checked.
+
+    :param others: verified (model, pose) of other objects: the pose must not penetrate them.
+    :return: (pose, its check).
+    """
+    m, s = model, settings
+    reach = m.radius + 2.0 * s.max_distance
+    centre = start[:3, :3] @ m.centre + start[:3, 3]
+    cone = scene.cone(centre, reach)
+    if not refine:      # check ``start`` itself
+        return start, check_pose(m, start, cone, s, prediction, others, acquisition)
+    margin = 2.0 * s.max_distance
+    near = crop_near(cone, centre, reach, start, m.box_min - margin, m.box_max + margin)
+    if len(near) < 10:
+        return start, PoseQuality(reason=f'only {len(near)} scene points near the pose')
+    pose = track_icp(m, near, start, s)
+    return pose, check_pose(m, pose, cone, s, prediction, others, acquisition)
+
+
+def slide_along_axes(model: TrackingModel, scene: SceneCloud, pose: np.ndarray,
+                     q: PoseQuality, settings: TrackerSettings,
+                     others: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
+                     longest_only: bool = False) -> Tuple[np.ndarray, PoseQuality, str]:
+    """
+    Search a pose's position along the model's principal axes by scene support.
+
+    Pattern search of the translation along each of ``model.axes`` (steps of a quarter of
+    the model's extent along it, halved down to ``slide_min_step``; at most half the extent
+    in all) keeping a move when the support (:attr:`VisibleEvidence.support`: inliers
+    minus contradicted samples) grows by more than 2 % of the expected-visible samples (at
+    least ``min_visible_samples``); a moved pose is refined by ICP and checked again (no
+    prediction, :func:`refine_and_check`) and replaces ``pose`` only if it passes with that
+    much more support.
+
+    :param pose: the pose (4x4 model -> sensor), usually one that passed the acquisition check.
+    :param q: its check.
+    :param others: verified (model, pose) of other objects, for the check.
+    :param longest_only: search along the model's longest axis only (a third of the work).
+    :return: (pose, check, '' or how it moved).
+    """
+    s, m = settings, model
+    if s.slide_min_step <= 0:
+        return pose, q, ''
+    centre = pose[:3, :3] @ m.centre + pose[:3, 3]
+    cone = scene.cone(centre, m.radius + 2.0 * s.max_distance + 0.5 * float(max(m.extents)))
+    gain = max(0.02 * q.visible_samples, s.min_visible_samples)
+    pick = [int(np.argmax(m.extents))] if longest_only else slice(None)
+    T0, _, start = search_along_axes(
+        pose, m.axes[pick], 0.25 * m.extents[pick],
+        lambda T: visible_evidence(m, T, cone, s).support, gain, s.slide_min_step,
+        0.5 * m.extents[pick])
+    if T0 is pose:
+        return pose, q, ''
+    pose2, q2 = refine_and_check(m, scene, T0, s, None, others, acquisition=True)
+    after = visible_evidence(m, pose2, cone, s).support
+    if not q2.passed or after <= start + gain:
+        return pose, q, ''
+    moved = float(np.linalg.norm(pose2[:3, 3] - pose[:3, 3]))
+    return pose2, q2, (f'slid {1e3 * moved:.1f} mm along the model axes to a place the '
+                       f'scene supports better ({start} -> {after} samples); ')
+
+
 #: Global acquisition: (model, scene points (N, 3) [m], seed, explained) -> candidate poses
 #: (best first). ``explained``: None, or (points (M, 3) [m, scene frame], radius [m]): the
 #: surface samples of objects already verified in the cloud; scene points within the radius of
@@ -1038,20 +1111,8 @@ class ObjectTracker:
                           prediction: Optional[np.ndarray], acquisition: bool = False,
                           refine: bool = True) -> Tuple[np.ndarray, PoseQuality]:
         # self._others: set by update() for the duration of one cloud
-        m, s = self.model, self.settings
-        reach = m.radius + 2.0 * s.max_distance
-        centre = start[:3, :3] @ m.centre + start[:3, 3]
-        cone = scene.cone(centre, reach)
-        if not refine:      # check ``start`` itself
-            return start, check_pose(m, start, cone, s, prediction, self._others, acquisition)
-        # within reach of the centre and in the model's bounding box at the start pose, grown
-        # by the ICP reach
-        margin = 2.0 * s.max_distance
-        near = crop_near(cone, centre, reach, start, m.box_min - margin, m.box_max + margin)
-        if len(near) < 10:
-            return start, PoseQuality(reason=f'only {len(near)} scene points near the pose')
-        pose = track_icp(m, near, start, s)
-        return pose, check_pose(m, pose, cone, s, prediction, self._others, acquisition)
+        return refine_and_check(self.model, scene, start, self.settings, prediction,
+                                self._others, acquisition, refine)
 
     def update(self, points: np.ndarray | SceneCloud, stamp_ns: int,
                others: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
@@ -1431,38 +1492,8 @@ class ObjectTracker:
 
     def slide_along_axes(self, scene: SceneCloud, pose: np.ndarray, q: PoseQuality
                          ) -> Tuple[np.ndarray, PoseQuality, str]:
-        """
-        Search a verified pose's position along the model's principal axes by scene support.
-
-        Pattern search of the translation along each of ``model.axes`` (steps of a quarter of
-        the model's extent along it, halved down to ``slide_min_step``; at most half the extent
-        in all) keeping a move when the support (:attr:`VisibleEvidence.support`: inliers
-        minus contradicted samples) grows by more than 2 % of the expected-visible samples (at
-        least ``min_visible_samples``); a moved pose is refined by ICP and checked again (no
-        prediction) and replaces ``pose`` only if it passes with that much more support.
-
-        :param pose: a pose that passed the acquisition check (4x4 model -> sensor).
-        :param q: its check.
-        :return: (pose, check, '' or how it moved).
-        """
-        s, m = self.settings, self.model
-        if s.slide_min_step <= 0:
-            return pose, q, ''
-        centre = pose[:3, :3] @ m.centre + pose[:3, 3]
-        cone = scene.cone(centre, m.radius + 2.0 * s.max_distance + 0.5 * float(max(m.extents)))
-        gain = max(0.02 * q.visible_samples, s.min_visible_samples)
-        T0, _, start = search_along_axes(
-            pose, m.axes, 0.25 * m.extents, lambda T: visible_evidence(m, T, cone, s).support,
-            gain, s.slide_min_step, 0.5 * m.extents)
-        if T0 is pose:
-            return pose, q, ''
-        pose2, q2 = self._refine_and_check(scene, T0, None, acquisition=True)
-        after = visible_evidence(m, pose2, cone, s).support
-        if not q2.passed or after <= start + gain:
-            return pose, q, ''
-        moved = float(np.linalg.norm(pose2[:3, 3] - pose[:3, 3]))
-        return pose2, q2, (f'slid {1e3 * moved:.1f} mm along the model axes to a place the '
-                           f'scene supports better ({start} -> {after} samples); ')
+        """:func:`slide_along_axes` with this tracker's model, settings and verified others."""
+        return slide_along_axes(self.model, scene, pose, q, self.settings, self._others)
 
     def known_pose(self) -> Optional[np.ndarray]:
         """Return the last verified pose, else the last known one (hint, pose before a loss)."""

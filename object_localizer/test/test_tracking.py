@@ -737,3 +737,27 @@ def test_a_pose_found_in_the_same_cloud_inside_a_better_one_is_withdrawn():
     b, rb = found(T @ make_transform(np.eye(3), [0.0, 0.25, 0.0]), 0.1)
     out = withdraw_overlapping([(b, rb), (s, rs)])
     assert out[0] is rb and out[1] is rs
+
+
+def test_slide_along_the_longest_axis_brings_back_a_pose_that_failed_the_check(arm):
+    """
+    ``slide_along_axes`` on its own (as the acquisition calls it), from a failing pose.
+
+    The brick slid 30 mm along its length over a wall: the pose fails the check; searched
+    along the longest axis only, by the check's scene support, it is brought back within 1 mm
+    and the returned check passes.
+    """
+    from object_localizer.tracking import slide_along_axes
+    mesh, model = arm
+    rng = np.random.default_rng(23)
+    T = make_transform(rotation_about_axis([0.2, 1.0, 0.3], 0.8), [0.01, -0.02, 0.6])
+    scene = SceneCloud(observe(mesh, T, rng))
+    axis = model.axes[int(np.argmax(model.extents))]
+    start = T @ make_transform(np.eye(3), -0.03 * axis)
+    settings = TrackerSettings()
+    c = start[:3, :3] @ model.centre + start[:3, 3]
+    q = check_pose(model, start, scene.cone(c, model.radius + 0.02), settings, acquisition=True)
+    assert not q.passed, 'the slid start must fail the check'
+    pose, q2, how = slide_along_axes(model, scene, start, q, settings, longest_only=True)
+    assert how.startswith('slid') and q2.passed, (how, q2.reason)
+    assert add_s(pose, T, model.points) < 0.001
