@@ -484,3 +484,27 @@ def test_search_leaves_out_what_a_verified_twin_explains(meshes, symmetries):
         assert found(poses[0], bricks[1 - k]), [symmetric_pose_error(p, bricks[1 - k], sym)
                                                 for p in poses]
         assert not any(found(p, bricks[k]) for p in poses)
+
+
+def test_symmetric_add_is_zero_for_an_equivalent_pose_where_add_s_has_a_floor(meshes, symmetries):
+    """
+    The peg turned upside down onto itself: symmetric ADD 0, ADD-S on its voxel template not.
+
+    The peg (40 x 40 x 120 mm, origin on its bottom face) turned 180 deg about a diagonal of
+    its cross-section and lifted by its length is the same solid: ``symmetric_add`` is 0, while
+    ADD-S on the 3 mm voxel template (not symmetric itself) has a floor of tenths of a mm. A
+    real 1 mm shift reads 1 mm.
+    """
+    from object_localizer.evaluation import add_s
+    from object_localizer.localization import prepare_model
+    from object_localizer.symmetry import surface_centroid, symmetric_add
+    sym = symmetries['peg']
+    pts = prepare_model(meshes['peg']).points
+    centre = surface_centroid(np.asarray(meshes['peg'].vertices), meshes['peg'].triangles())
+    np.testing.assert_allclose(centre, [0.0, 0.0, 0.06], atol=1e-12)
+    T = make_transform(rotation_about_axis([0.3, -0.2, 1.0], 0.7), [0.02, -0.01, 0.5])
+    flip = make_transform(rotation_about_axis([1.0, 1.0, 0.0], np.pi), [0.0, 0.0, 0.12])
+    assert symmetric_add(T @ flip, T, pts, sym, centre=centre) < 1e-9
+    assert add_s(T @ flip, T, pts) > 1e-4
+    shifted = make_transform(np.eye(3), [0.001, 0.0, 0.0]) @ T
+    assert abs(symmetric_add(shifted, T, pts, sym, centre=centre) - 0.001) < 1e-9

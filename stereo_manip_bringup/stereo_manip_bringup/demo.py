@@ -8,7 +8,8 @@ published poses (ADD-S median / p95 / max, frames without a pose and whether the
 TrackStatus flagged them, frames beyond :data:`WRONG_POSE_M`), plus:
 
 1. ``peg_in_hole``: synthetic_camera -> stereo_depth_node -> object_localizer_node (peg,
-   hole_block static) -> contact_correction_node. The peg's ADD-S relative to the localised
+   hole_block static) -> contact_correction_node. The peg's ADD-sym (ADD over its symmetries,
+   ``object_localizer.symmetry.symmetric_add``) relative to the localised
    block before and after contact correction per phase of the insertion (approach, sliding,
    inserting, inserted: from the scene's truth), penetration, contact ranks.
 2. ``revolute_pair``: ... -> object_localizer_node (link_base, link_arm) ->
@@ -226,6 +227,32 @@ def _model_points(name: str) -> np.ndarray:
     return _MODEL_POINTS[name]
 
 
+_SYMMETRIES: Dict[str, Any] = {}
+
+
+def _symmetric_error(name: str) -> Callable[[np.ndarray, np.ndarray], float]:
+    """
+    ADD over the model's symmetries [m] of an estimate against the truth (both 4x4).
+
+    ``object_localizer.symmetry.symmetric_add`` with the model's symmetry rotations about its
+    exact surface centroid: 0 for a pose equivalent to the truth (the peg tracked upside
+    down), where ADD-S on the voxel template points reads 0.57 mm.
+    """
+    if name not in _SYMMETRIES:
+        from object_localizer.symmetry import find_symmetries, surface_centroid
+        from object_localizer.verification import sample_model_surface
+        from stereo_manip_tools.mesh_io import find_model, load_obj
+        mesh = load_obj(find_model(name))
+        samples = sample_model_surface(mesh, 0.003, max_samples=8000)
+        sym = find_symmetries(samples.points, samples.spacing)
+        _SYMMETRIES[name] = (sym, sym.rotation_set(),
+                             surface_centroid(np.asarray(mesh.vertices), mesh.triangles()))
+    sym, rotations, centre = _SYMMETRIES[name]
+    from object_localizer.symmetry import symmetric_add
+    pts = _model_points(name)
+    return lambda est, true: symmetric_add(est, true, pts, sym, rotations, centre)
+
+
 def spread(values: Sequence[float], scale: float = 1.0) -> Dict[str, float]:
     """median, p95, max and count of ``values`` times ``scale`` (NaN when empty)."""
     a = np.asarray(list(values), float) * scale
@@ -320,10 +347,9 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
     Score every object's published poses against truth.
 
     Every object's published poses against truth (lost / flagged / wrong frames counted),
-    and the peg's ADD-S before and after contact correction, in the camera frame and relative
+    and the peg's ADD-sym before and after contact correction, in the camera frame and relative
     to the localised hole block, per contact phase.
     """
-    from object_localizer.evaluation import add_s
     from stereo_manip_tools.transforms import invert_transform
     out: Dict[str, Any] = {'poses': {n: score_object_poses(data, n, window)
                                      for n in stage.objects}}
@@ -335,7 +361,7 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
     block_truth = _by_stamp(data['/objects/hole_block/pose_truth'])
     block = _by_stamp(data['/objects/hole_block/pose'])
     states = _by_stamp(data['/contact_state'])
-    pts = _model_points('peg')
+    error = _symmetric_error('peg')
     table = _peg_phases()
     rows = []
     for stamp in sorted(set(truth) & set(block_truth)):
@@ -345,11 +371,11 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
         row: Dict[str, Any] = {'stamp_ns': stamp, 'phase': _phase_of(rel_true, table)}
         if stamp in observed and stamp in block:
             to_block = invert_transform(_pose(block[stamp]))
-            row['relative_add_s_observed_m'] = add_s(to_block @ _pose(observed[stamp]),
-                                                     rel_true, pts)
+            row['relative_add_sym_observed_m'] = error(to_block @ _pose(observed[stamp]),
+                                                       rel_true)
             if stamp in corrected:
-                row['relative_add_s_corrected_m'] = add_s(to_block @ _pose(corrected[stamp]),
-                                                          rel_true, pts)
+                row['relative_add_sym_corrected_m'] = error(to_block @ _pose(corrected[stamp]),
+                                                            rel_true)
         st = states.get(stamp)
         if st is not None:
             row.update(corrected=bool(st.corrected), rotation_rank=int(st.rotation_rank),
@@ -358,21 +384,21 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
                        status=st.status)
         rows.append(row)
     out['frames'] = rows
-    out['frames_scored'] = sum('relative_add_s_corrected_m' in r for r in rows)
+    out['frames_scored'] = sum('relative_add_sym_corrected_m' in r for r in rows)
     out['camera_frames'] = len(rows)
     phases = {}
     for phase in PEG_PHASES:
         sel = [r for r in rows if r['phase'] == phase]
         phases[phase] = {
             'frames': len(sel),
-            'frames_scored': sum('relative_add_s_corrected_m' in r for r in sel),
+            'frames_scored': sum('relative_add_sym_corrected_m' in r for r in sel),
             'contact_corrected': sum(bool(r.get('corrected')) for r in sel),
-            'relative_add_s_observed_mm': spread(
-                [r['relative_add_s_observed_m'] for r in sel
-                 if 'relative_add_s_corrected_m' in r], 1000.0),
-            'relative_add_s_corrected_mm': spread(
-                [r['relative_add_s_corrected_m'] for r in sel
-                 if 'relative_add_s_corrected_m' in r], 1000.0)}
+            'relative_add_sym_observed_mm': spread(
+                [r['relative_add_sym_observed_m'] for r in sel
+                 if 'relative_add_sym_corrected_m' in r], 1000.0),
+            'relative_add_sym_corrected_mm': spread(
+                [r['relative_add_sym_corrected_m'] for r in sel
+                 if 'relative_add_sym_corrected_m' in r], 1000.0)}
     out['phases'] = phases
     corr = [r for r in rows if r.get('corrected')]
     out['frames_corrected'] = len(corr)
@@ -743,11 +769,11 @@ def _figure(stage: str, result: Dict[str, Any], path: Path) -> Optional[Path]:
         ax2 = axes[1, 0]
         rows = result['frames']
         t = np.array([(r['stamp_ns'] - t0) / 1e9 for r in rows])
-        for key, label, mk in (('relative_add_s_observed_m', 'localised', 'o'),
-                               ('relative_add_s_corrected_m', 'after contact correction', 's')):
+        for key, label, mk in (('relative_add_sym_observed_m', 'localised', 'o'),
+                               ('relative_add_sym_corrected_m', 'after contact correction', 's')):
             e = np.array([r[key] * 1000 if key in r else np.nan for r in rows])
             ax2.plot(t, e, mk + '-', ms=3, lw=0.8, label=label)
-        missing = np.array(['relative_add_s_corrected_m' not in r for r in rows])
+        missing = np.array(['relative_add_sym_corrected_m' not in r for r in rows])
         if missing.any():
             ax2.plot(t[missing], np.zeros(missing.sum()), 'rv', ms=6,
                      label='no corrected pose')
@@ -757,7 +783,7 @@ def _figure(stage: str, result: Dict[str, Any], path: Path) -> Optional[Path]:
             lo = t[k] - (t[k] - t[k - 1]) / 2 if k else t[k]
             hi = t[k] + (t[k + 1] - t[k]) / 2 if k + 1 < len(rows) else t[k]
             ax2.axvspan(lo, hi, color=shade[r['phase']], lw=0, zorder=0)
-        ax2.set_ylabel('peg ADD-S relative to block [mm]')
+        ax2.set_ylabel('peg ADD-sym relative to block [mm]')
         ax2.set_title("peg in the hole block's frame; shading: approach (white), sliding "
                       '(blue), inserting (orange), inserted (green)', fontsize=8)
         ax2.legend(fontsize=7)
@@ -810,9 +836,9 @@ def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
         for phase, ph in result['phases'].items():
             lines.append(
                 f"{phase} ({ph['frames']} frames, {ph['frames_scored']} scored, "
-                f"{ph['contact_corrected']} corrected): peg ADD-S relative to the localised "
-                f"block: localised {_fmt(ph['relative_add_s_observed_mm'])}; after correction "
-                f"{_fmt(ph['relative_add_s_corrected_mm'])}")
+                f"{ph['contact_corrected']} corrected): peg ADD-sym relative to the localised "
+                f"block: localised {_fmt(ph['relative_add_sym_observed_mm'])}; after correction "
+                f"{_fmt(ph['relative_add_sym_corrected_mm'])}")
         lines.append(f"max penetration observed {result['max_penetration_observed_mm']:.2f} "
                      f'mm; max contact residual after correction '
                      f"{result['max_contact_residual_after_mm']:.4f} mm; rotation ranks seen "
