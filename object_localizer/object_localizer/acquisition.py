@@ -73,9 +73,9 @@ from object_localizer.localization import (fpfh_features, match_features_ransac,
 from object_localizer.point_to_plane import icp_point_to_plane
 from object_localizer.ppf import build_ppf_model, cluster_poses, ppf_vote, PPFModel
 from object_localizer.tracking import (check_pose, PoseQuality, prepare_tracking_model,
-                                       principal_axes, SceneCloud, search_along_axes,
-                                       slide_along_axes, track_icp, TrackerSettings,
-                                       TrackingModel)
+                                       principal_axes, refine_and_check, SceneCloud,
+                                       search_along_axes, slide_along_axes, track_icp,
+                                       TrackerSettings, TrackingModel, unexplained)
 from object_localizer.verification import (as_camera, CameraLike, observe_depth, ObservedDepth,
                                            sample_model_surface, score_pose_visibility,
                                            SurfaceSamples, unoccluded_mask, VisibilityScore)
@@ -360,19 +360,10 @@ def prepare_acquisition_scene(scene_points: np.ndarray, scene_normals: Optional[
 
 def _unexplained(cloud: o3d.geometry.PointCloud, exclude: Optional[np.ndarray],
                  radius: float) -> Tuple[np.ndarray, np.ndarray]:
-    """
-    Return the points of ``cloud`` that no other object explains.
-
-    The points (K, 3) and normals (K, 3) of ``cloud`` farther than ``radius`` [m] from every
-    row of ``exclude`` (M, 3) [m, same frame]; all of them when ``exclude`` is empty.
-    """
+    """Return the points (K, 3) and normals (K, 3) of ``cloud`` no other object explains."""
     S, SN = np.asarray(cloud.points), np.asarray(cloud.normals)
-    if exclude is None or not len(exclude) or not len(S):
-        return S, SN
-    from scipy.spatial import cKDTree
-    near = cKDTree(np.asarray(exclude, dtype=float)).query(
-        S, k=1, distance_upper_bound=radius)[0] <= radius
-    return S[~near], SN[~near]
+    keep = unexplained(S, exclude, radius)
+    return S[keep], SN[keep]
 
 
 def _rough_ppf(model: AcquisitionModel, scene: AcquisitionScene, seed: int,
@@ -689,10 +680,8 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         # the check's samples (ball_link slid 13.6 and 31.8 mm, found at 0.4 and 1.3 mm)
         settings = check_settings if check_settings is not None else TrackerSettings()
         h, rays = refined[0], scene.rays()
-        c = h.pose[:3, :3] @ model.check.centre + h.pose[:3, 3]
-        q0 = check_pose(model.check, h.pose, rays.cone(c, model.check.radius
-                                                       + 2.0 * settings.max_distance),
-                        settings, acquisition=True)
+        _, q0 = refine_and_check(model.check, rays, h.pose, settings, acquisition=True,
+                                 refine=False)
         if not q0.passed:
             slid, _, how = slide_along_axes(model.check, rays, h.pose, q0, settings,
                                             longest_only=True)

@@ -61,9 +61,9 @@ from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
 __all__ = ['TrackState', 'TrackerSettings', 'TrackingModel', 'PoseQuality', 'TrackUpdate',
            'SceneCloud', 'prepare_tracking_model', 'predict_constant_velocity', 'carried_motion',
-           'track_icp', 'check_pose', 'refine_and_check', 'slide_along_axes', 'ObjectTracker',
-           'Acquirer', 'make_acquirer',
-           'acquire_rough_fine', 'same_shape', 'symmetric_distance']
+           'track_icp', 'check_pose', 'refine_and_check', 'slide_along_axes', 'unexplained',
+           'ObjectTracker', 'Acquirer', 'make_acquirer', 'acquire_rough_fine', 'same_shape',
+           'symmetric_distance']
 
 
 class TrackState(enum.IntEnum):
@@ -988,15 +988,30 @@ def slide_along_axes(model: TrackingModel, scene: SceneCloud, pose: np.ndarray,
 Acquirer = Callable[[TrackingModel, np.ndarray, int, Optional[Tuple[np.ndarray, float]]], list]
 
 
+def unexplained(points: np.ndarray, explained: Optional[np.ndarray], radius: float
+                ) -> np.ndarray:
+    """
+    Return the mask of the points that no explained point is near.
+
+    Mask (N,) of ``points`` (N, 3) farther than ``radius`` [m] from every row of ``explained``
+    (M, 3) [m, same frame]: all True when ``explained`` is None or empty.
+    """
+    keep = np.ones(len(points), dtype=bool)
+    if explained is None or not len(explained) or not len(points):
+        return keep
+    from scipy.spatial import cKDTree
+    d = cKDTree(np.asarray(explained, dtype=float)).query(
+        points, k=1, distance_upper_bound=radius)[0]
+    return d > radius
+
+
 def acquire_rough_fine(model: TrackingModel, points: np.ndarray, seed: int,
                        explained: Optional[Tuple[np.ndarray, float]] = None) -> list:
     """Global acquisition with ``localization.localize`` (FPFH + RANSAC, then ICP)."""
     P = np.asarray(points, dtype=float)
     P = P[np.all(np.isfinite(P), axis=1)]
-    if explained is not None and len(explained[0]):
-        from scipy.spatial import cKDTree
-        d = cKDTree(explained[0]).query(P, k=1, distance_upper_bound=explained[1])[0]
-        P = P[d > explained[1]]
+    if explained is not None:
+        P = P[unexplained(P, *explained)]
     return [localize(model.template, P, seed=seed).pose]
 
 

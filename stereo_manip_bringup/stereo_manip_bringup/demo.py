@@ -238,8 +238,8 @@ def _symmetric_error(name: str) -> Callable[[np.ndarray, np.ndarray], float]:
     exact surface centroid: 0 for a pose equivalent to the truth (the peg tracked upside
     down), where ADD-S on the voxel template points reads 0.57 mm.
     """
+    from object_localizer.symmetry import find_symmetries, surface_centroid, symmetric_add
     if name not in _SYMMETRIES:
-        from object_localizer.symmetry import find_symmetries, surface_centroid
         from object_localizer.verification import sample_model_surface
         from stereo_manip_tools.mesh_io import find_model, load_obj
         mesh = load_obj(find_model(name))
@@ -248,7 +248,6 @@ def _symmetric_error(name: str) -> Callable[[np.ndarray, np.ndarray], float]:
         _SYMMETRIES[name] = (sym, sym.rotation_set(),
                              surface_centroid(np.asarray(mesh.vertices), mesh.triangles()))
     sym, rotations, centre = _SYMMETRIES[name]
-    from object_localizer.symmetry import symmetric_add
     pts = _model_points(name)
     return lambda est, true: symmetric_add(est, true, pts, sym, rotations, centre)
 
