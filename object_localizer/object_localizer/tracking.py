@@ -1067,7 +1067,7 @@ def make_acquirer(method: str, max_candidates: int = 6,
         exclude, radius = explained if explained is not None else (None, 0.0)
         hyps = acquisition.acquire_object(model.acquisition, scene, method=method, seed=seed,
                                           time_budget_s=time_budget_s, exclude_points=exclude,
-                                          exclude_radius=radius)
+                                          exclude_radius=radius, polish=False)
         return [h.pose for h in hyps[:max_candidates]]
     return acquire
 
