@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from stereo_manip_tools.transforms import rotation_about_axis
 
 __all__ = ['ModelSymmetry', 'find_symmetries', 'symmetric_pose_error', 'symmetric_add',
-           'surface_centroid']
+           'surface_centroid', 'nearest_equivalent_pose']
 
 
 @dataclass
@@ -217,3 +217,37 @@ def surface_centroid(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     tri = V[np.asarray(triangles, dtype=np.int64)]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     return (tri.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum()
+
+
+def nearest_equivalent_pose(pose: np.ndarray, reference: np.ndarray, rotations: np.ndarray,
+                            centre: np.ndarray) -> np.ndarray:
+    """
+    Return the pose equivalent to ``pose`` whose orientation is nearest ``reference``'s.
+
+    The poses equivalent under the model's discrete symmetries ``S`` (rotations about
+    ``centre``) put the same surface in the same place, ``T S_c`` with ``S_c: x -> S (x - c) +
+    c``; of them, the one whose rotation is the smallest angle from ``reference``'s. A
+    search cannot tell them apart (a square peg upside down is the same shape), but the
+    model frame a robot plans with should not flip: a re-acquired pose keeps the frame of the
+    pose before the loss, or of the initial pose.
+
+    :param pose: (4, 4) model -> sensor.
+    :param reference: (4, 4) model -> sensor, the orientation to stay near.
+    :param rotations: (K, 3, 3) the symmetry rotations (``ModelSymmetry.rotations``, the
+        identity included).
+    :param centre: (3,) the point every symmetry fixes [m, model frame] (the mesh's exact
+        :func:`surface_centroid`).
+    :return: (4, 4) the equivalent pose (``pose`` itself when the identity is nearest).
+    """
+    T = np.asarray(pose, dtype=float)
+    R = T[:3, :3]
+    A = np.asarray(reference, dtype=float)[:3, :3].T @ R
+    k = int(np.argmax(np.einsum('ij,kji->k', A, np.asarray(rotations, dtype=float))))
+    S = np.asarray(rotations[k], dtype=float)
+    if np.allclose(S, np.eye(3)):
+        return T
+    c = np.asarray(centre, dtype=float)
+    out = T.copy()
+    out[:3, :3] = R @ S
+    out[:3, 3] = T[:3, 3] + R @ c - R @ S @ c
+    return out

@@ -540,3 +540,32 @@ def test_the_best_pose_is_polished_by_the_trackers_icp():
             errors[polish] = (1e3 * e_t, np.degrees(e_r))
         assert max(errors[False][0] / 2.0, errors[False][1] / 2.0) > 1.0, (name, errors)
         assert errors[True][0] < 0.5 and errors[True][1] < 0.5, (name, errors)
+
+
+def test_nearest_equivalent_pose_turns_the_upside_down_peg_back(meshes, symmetries):
+    """
+    The upside-down peg, an equivalent pose, is given back in the reference's orientation.
+
+    Of the peg's 8 equivalent poses (4 turns about its long axis, each upright or upside
+    down), the one nearest a reference 10 deg from the truth is the truth itself, exactly; the
+    surface stays where it was; a pose already near the reference is returned unchanged.
+    """
+    from object_localizer.symmetry import nearest_equivalent_pose, surface_centroid
+    sym = symmetries['peg']
+    assert len(sym.rotations) == 8
+    centre = surface_centroid(np.asarray(meshes['peg'].vertices), meshes['peg'].triangles())
+    T = make_transform(rotation_about_axis([0.3, -0.2, 1.0], 0.7), [0.02, -0.01, 0.5])
+    reference = T @ make_transform(rotation_about_axis([0.0, 1.0, 0.2], np.radians(10.0)),
+                                   [0.003, 0.0, 0.0])
+    for flip in (make_transform(rotation_about_axis([1.0, 1.0, 0.0], np.pi), [0, 0, 0.12]),
+                 make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.pi / 2), [0, 0, 0]),
+                 make_transform(rotation_about_axis([1.0, 0.0, 0.0], np.pi), [0, 0, 0.12])):
+        equivalent = T @ flip
+        back = nearest_equivalent_pose(equivalent, reference, sym.rotations, centre)
+        np.testing.assert_allclose(back, T, atol=1e-9)
+        V = np.asarray(meshes['peg'].vertices)
+        moved = V @ back[:3, :3].T + back[:3, 3]
+        was = V @ equivalent[:3, :3].T + equivalent[:3, 3]
+        from scipy.spatial import cKDTree
+        assert cKDTree(was).query(moved)[0].max() < 1e-9      # the same solid, same place
+    assert nearest_equivalent_pose(T, reference, sym.rotations, centre) is T

@@ -125,6 +125,29 @@ def test_a_wrong_hint_is_not_trusted(arm):
     assert add_s(res.pose, T, model.points) < 0.001
 
 
+def test_an_acquired_symmetric_pose_keeps_the_frame_of_the_reference():
+    """
+    The search finds the square peg upside down (an equivalent pose): the frame is not flipped.
+
+    A hint 40 mm off is rejected; the global search's only candidate is the truth turned
+    upside down onto itself. The published pose is the equivalent nearest the hint's
+    orientation: the truth's frame, within 0.5 mm / 0.5 deg (the flipped frame is 180 deg off).
+    """
+    mesh = load_obj(find_model('peg'))
+    model = prepare_tracking_model(mesh)
+    rng = np.random.default_rng(11)
+    T = make_transform(rotation_about_axis([1.0, 0.2, 0.1], 2.2), [0.01, -0.02, 0.6])
+    flipped = T @ make_transform(rotation_about_axis([1.0, 1.0, 0.0], np.pi), [0, 0, 0.12])
+    tracker = ObjectTracker(model, TrackerSettings(),
+                            acquirer=lambda m, p, seed, explained=None: [flipped])
+    tracker.reset(make_transform(np.eye(3), [0.04, 0.0, 0.0]) @ T)
+    res = tracker.update(observe(mesh, T, rng), 0)
+    assert res.pose is not None and res.acquired, res.reason
+    turn = np.degrees(np.arccos(np.clip((np.trace(res.pose[:3, :3].T @ T[:3, :3]) - 1) / 2,
+                                        -1, 1)))
+    assert turn < 0.5 and np.linalg.norm(res.pose[:3, 3] - T[:3, 3]) < 0.0005, (turn, res.pose)
+
+
 def test_loss_is_reported_and_the_object_reacquired(arm):
     """
     The object jumps 15 cm between clouds.

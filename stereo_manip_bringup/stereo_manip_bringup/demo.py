@@ -200,6 +200,9 @@ def _localizer(scene: str, models: Sequence[str], static: Sequence[str] = ()) ->
 # --- scoring --------------------------------------------------------------------------------
 
 WRONG_POSE_M = 0.005      # a published pose farther than this (ADD-S) from the truth is wrong
+#: a right pose whose frame is turned more than this [deg] from the truth's is an equivalent
+#: pose of a symmetric part (the shipped models' symmetries turn by 90 deg or more)
+TURNED_FRAME_DEG = 45.0
 
 # TrackStatus states (stereo_manip_msgs/msg/TrackStatus): a pose published under one of these
 # claims to be good; any other state flags the frame.
@@ -269,6 +272,10 @@ def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
 
     Its published pose's ADD-S against truth [m], or why there is none; a published pose beyond
     :data:`WRONG_POSE_M` whose TrackStatus (if any) does not flag it is *wrong and unflagged*.
+    A right pose (ADD-S within :data:`WRONG_POSE_M`) whose frame is turned more than
+    :data:`TURNED_FRAME_DEG` from the truth's is an equivalent pose of a symmetric part (the
+    peg upside down): the same surface, but a frame a robot would plan with wrongly; counted
+    as ``frame_turned``.
 
     :param window: (first, last) stamps [ns] of the frames scored (None: all).
     :returns: ``frames`` rows (stamp, add_s_m or None, state, flagged) and the counts.
@@ -287,8 +294,12 @@ def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
         state = _TRACK_STATE_NAMES.get(int(st.state), '?') if st is not None else None
         flagged = st is not None and int(st.state) not in _GOOD_STATES
         err = add_s(_pose(poses[stamp]), _pose(truth[stamp]), pts) if stamp in poses else None
-        rows.append({'stamp_ns': stamp, 'add_s_m': err, 'state': state, 'flagged': flagged,
-                     'reason': st.reason if st is not None else ''})
+        turn = None
+        if stamp in poses:
+            c = (np.trace(_pose(poses[stamp])[:3, :3].T @ _pose(truth[stamp])[:3, :3]) - 1) / 2
+            turn = float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+        rows.append({'stamp_ns': stamp, 'add_s_m': err, 'turn_deg': turn, 'state': state,
+                     'flagged': flagged, 'reason': st.reason if st is not None else ''})
     errs = [r['add_s_m'] for r in rows if r['add_s_m'] is not None]
     wrong = [r for r in rows if r['add_s_m'] is not None and r['add_s_m'] > WRONG_POSE_M]
     no_pose = [r for r in rows if r['add_s_m'] is None]
@@ -301,6 +312,8 @@ def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
         'add_s_mm': spread(errs, 1000.0),
         'beyond_error': len(wrong), 'error_threshold_mm': WRONG_POSE_M * 1000,
         'wrong_unflagged': sum(not r['flagged'] for r in wrong),
+        'frame_turned': sum(r['add_s_m'] <= WRONG_POSE_M and r['turn_deg'] > TURNED_FRAME_DEG
+                            for r in rows if r['add_s_m'] is not None),
     }
 
 
@@ -814,15 +827,17 @@ def _fmt(sp: Dict[str, float], unit: str = 'mm', digits: int = 2) -> str:
 
 def _pose_table(poses: Dict[str, Any]) -> List[str]:
     lines = ['| object | camera frames | with pose | no pose (flagged by status / no status) '
-             '| ADD-S median / p95 / max [mm] | > 5 mm | > 5 mm unflagged |',
-             '|---|---|---|---|---|---|---|']
+             '| ADD-S median / p95 / max [mm] | > 5 mm | > 5 mm unflagged '
+             f'| frame turned > {TURNED_FRAME_DEG:.0f} deg (equivalent pose) |',
+             '|---|---|---|---|---|---|---|---|']
     for name, p in poses.items():
         sp = p['add_s_mm']
         adds = (f"{sp['median']:.2f} / {sp['p95']:.2f} / {sp['max']:.2f}" if sp['n']
                 else 'n/a')
         lines.append(f"| {name} | {p['camera_frames']} | {p['with_pose']} | {p['no_pose']} "
                      f"({p['no_pose_flagged']} / {p['no_pose_no_status']}) | {adds} | "
-                     f"{p['beyond_error']} | {p['wrong_unflagged']} |")
+                     f"{p['beyond_error']} | {p['wrong_unflagged']} | "
+                     f"{p.get('frame_turned', 'n/a')} |")
     return lines
 
 

@@ -35,7 +35,7 @@ def _pose_msg(stamp_ns, T):
 def test_object_poses_are_scored_and_unflagged_wrong_poses_counted():
     from stereo_manip_msgs.msg import TrackStatus
     from stereo_manip_tools.conversions import ns_to_stamp
-    from stereo_manip_tools.transforms import make_transform
+    from stereo_manip_tools.transforms import make_transform, rotation_about_axis
     truth = make_transform(np.eye(3), [0.0, 0.0, 0.5])
     off = lambda dx: make_transform(np.eye(3), [dx, 0.0, 0.5])  # noqa: E731
     stamps = [10, 20, 30, 40, 50]
@@ -60,6 +60,14 @@ def test_object_poses_are_scored_and_unflagged_wrong_poses_counted():
     assert 0 < errs[1] <= 0.001 and errs[2] > 0.005
     assert r['add_s_mm']['median'] == pytest.approx(1000 * np.median(errs))
     assert r['add_s_mm']['max'] == pytest.approx(1000 * errs[2])
+    assert r['frame_turned'] == 0
+    # the peg upside down onto itself (equivalent, ADD-S tiny) turns the frame 180 deg
+    flipped = truth @ make_transform(rotation_about_axis([1.0, 1.0, 0.0], np.pi), [0, 0, 0.12])
+    turned = dict(data, **{'/objects/peg/pose': data['/objects/peg/pose'][:1] + [
+        (20, _pose_msg(20, flipped))]})
+    t = demo.score_object_poses(turned, 'peg')
+    assert t['frame_turned'] == 1 and t['beyond_error'] == 0
+    assert t['frames'][1]['turn_deg'] == pytest.approx(180.0)
     r = demo.score_object_poses(data, 'peg', window=(15, 35))
     assert r['camera_frames'] == 2 and r['wrong_unflagged'] == 1
     assert demo.unflagged_wrong_poses({'poses': {'peg': r}}) == 1
