@@ -74,6 +74,8 @@ class ObjectLocalizerNode(Node):
         'explained_radius': 'explained_radius',
         'stereo_baseline': 'stereo_baseline',
         'static_recheck_period': 'static_recheck_period',
+        'static_average': 'static_average',
+        'static_average_gate': 'static_average_gate',
         'relock_window': 'relock_window',
         'relock_shift': 'relock_shift',
         'relock_turn': 'relock_turn',
@@ -151,6 +153,15 @@ class ObjectLocalizerNode(Node):
         self.declare_parameter('static_recheck_period', 1.0,
                                _float('re-verification period of static objects [s of cloud '
                                       'stamps]', 0.0, 3600.0))
+        self.declare_parameter('static_average', 30,
+                               int_descriptor('a static object is held at the mean of its last '
+                                              'this many poses refined and verified at its '
+                                              're-checks (1: the first verified pose is held)',
+                                              1, 1000))
+        self.declare_parameter('static_average_gate', 0.003,
+                               _float('a re-check pose farther than this [m, mean displacement] '
+                                      'from the static mean restarts it (the object moved)',
+                                      0.0001, 0.1))
         self.declare_parameter('relock_window', 1.0,
                                _float('after a loss, for this long [s of cloud stamps] the lost '
                                       'track is re-acquired locally first (0: off)',

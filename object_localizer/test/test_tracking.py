@@ -240,11 +240,12 @@ def test_static_object_is_held_and_rechecked(arm):
 
 
 def test_static_recheck_keeps_a_verified_pose_and_refines_a_nudged_one(arm):
-    """The held pose is checked as it is; only a failed check costs an ICP refinement."""
+    """Without averaging the held pose is checked as it is; only a failed check costs ICP."""
     mesh, model = arm
     rng = np.random.default_rng(19)
     T = moving_pose(2)
-    tracker = ObjectTracker(model, TrackerSettings(static=True, static_recheck_period=0.1))
+    tracker = ObjectTracker(model, TrackerSettings(static=True, static_recheck_period=0.1,
+                                                   static_average=1))
     tracker.reset(T)
     first = tracker.update(observe(mesh, T, rng), 0)
     assert first.state == TrackState.STATIC and add_s(first.pose, T, model.points) < 0.001
@@ -259,6 +260,36 @@ def test_static_recheck_keeps_a_verified_pose_and_refines_a_nudged_one(arm):
     assert add_s(res.pose, nudged, model.points) < 0.001
     assert np.linalg.norm(res.pose[:3, 3] - nudged[:3, 3]) < 0.0015
     assert add_s(first.pose, nudged, model.points) > 0.0015     # the held pose is off
+
+
+def test_a_static_pose_is_the_mean_of_its_verified_rechecks(arm):
+    """
+    Each cloud's error moves the refined pose; the held pose is their mean, and restarts.
+
+    Every cloud of the static part is shifted by its own random 0.6 mm per axis (a stereo
+    error that changes from frame to frame): each re-check's refined pose follows its cloud,
+    the held pose is the mean of them and ends well within the single clouds' spread. Moved
+    by 10 mm, the part's refined pose restarts the mean instead of joining it.
+    """
+    mesh, model = arm
+    rng = np.random.default_rng(29)
+    T = moving_pose(2)
+    tracker = ObjectTracker(model, TrackerSettings(static=True, static_recheck_period=0.1))
+    tracker.reset(T)
+    single, held = [], None
+    for k in range(16):
+        shift = make_transform(np.eye(3), rng.normal(scale=0.0006, size=3))
+        res = tracker.update(observe(mesh, shift @ T, rng), k * 150_000_000)
+        assert res.pose is not None and res.state == TrackState.STATIC, res.reason
+        single.append(add_s(shift @ T, T, model.points))
+        held = res
+    assert 'mean of 16 refined poses' in held.reason, held.reason
+    assert add_s(held.pose, T, model.points) < 0.5 * np.median(single), (
+        add_s(held.pose, T, model.points), np.median(single))
+    moved = make_transform(np.eye(3), [0.0, 0.0, 0.01]) @ T
+    res = tracker.update(observe(mesh, moved, rng), 16 * 150_000_000)
+    assert res.pose is not None and add_s(res.pose, moved, model.points) < 0.001, res.reason
+    assert 'mean' not in res.reason, res.reason
 
 
 def test_a_pose_inside_another_object_is_rejected(arm):
