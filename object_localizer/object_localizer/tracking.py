@@ -33,7 +33,8 @@ Per cloud and object (:meth:`ObjectTracker.update`):
 4. **States.** ``ACQUIRING`` (no pose yet: the global acquisition runs on the whole cloud),
    ``TRACKING``, ``LOST`` (the last pose failed: the next cloud is searched globally, from
    scratch), ``STATIC`` (objects declared static: localised and verified once, then the pose is
-   held and re-verified every ``static_recheck_period`` seconds of stamps).
+   held and re-verified every ``static_recheck_period`` seconds of stamps; the held pose is
+   the mean of the verified re-check poses, ``static_average``).
 
 An initial pose is a hint: it goes through the same ICP and check as a prediction, and the
 global acquisition runs when it fails.
