@@ -1203,9 +1203,10 @@ class ObjectTracker:
             if not due:
                 return TrackUpdate(held.copy(), TrackState.STATIC, self._last_quality,
                                    'static: pose held since the last check')
-            # the held pose itself first: a static object that passes the check keeps its
-            # pose and costs one check, not ICP + check (hole_block: about half); a
-            # failed check is refined by ICP from the held pose and checked again
+            # static_average > 1: refined by ICP from the held pose and, verified, averaged
+            # with the earlier re-checks (:meth:`_static_mean`); the held pose itself is
+            # checked only when that fails. static_average 1: the held pose is checked first
+            # (one check, not ICP + check: hole_block about half) and refined only if it fails
             pose, q, how = None, None, ''
             if s.static_average > 1:    # refined and averaged: the held pose is a mean
                 refined, q_refined = self._refine_and_check(scene, held, held)
