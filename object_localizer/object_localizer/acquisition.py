@@ -92,6 +92,7 @@ __all__ = [
     'prepare_acquisition_model',
     'prepare_acquisition_scene',
     'acquire_object',
+    'polish_hypothesis',
     'score_pose_visibility',
     'observe_depth',
 ]
@@ -562,6 +563,32 @@ def _same_place(model: AcquisitionModel, pose_a: np.ndarray, pose_b: np.ndarray,
 _SURFACE_TREES: Dict[int, Tuple[np.ndarray, np.ndarray, Any]] = {}
 
 
+def polish_hypothesis(model: AcquisitionModel, scene: AcquisitionScene, hypothesis: Hypothesis,
+                      quality: PoseQuality, settings: TrackerSettings,
+                      tolerance: float = 0.004) -> bool:
+    """
+    Polish a hypothesis in place by the tracker's ICP; return whether its pose was replaced.
+
+    ``tracking.refine_and_check`` (Tukey point-to-plane on the scene points on the pose's
+    rays, exact model normals) from ``hypothesis.pose``; the result replaces it when it passes
+    the tracker's check with a quality no lower than ``quality`` (the check of the unpolished
+    pose), or with more scene support (inliers minus contradicted samples) by the margin of
+    ``tracking.slide_along_axes`` (2 % of the visible samples; a superquadric 3.0 -> 0.4 deg:
+    quality 0.711 -> 0.704, supported samples 2715 -> 2798). A rail's ICP can walk 7-10 mm
+    along it; its check's quality and support then drop, and it is not kept. The score is
+    then the visibility score of the polished pose at ``tolerance`` [m].
+    """
+    polished, q = refine_and_check(model.check, scene.rays(), hypothesis.pose, settings,
+                                   acquisition=True)
+    gain = max(0.02 * quality.visible_samples, settings.min_visible_samples)
+    if not q.passed or (q.quality < quality.quality and q.support <= quality.support + gain):
+        return False
+    hypothesis.pose = polished
+    hypothesis.visibility = scene.visibility(model.surface, polished, tolerance)
+    hypothesis.score = hypothesis.visibility.combined
+    return True
+
+
 def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
                    scene_points: Union[AcquisitionScene, np.ndarray],
                    scene_normals: Optional[np.ndarray] = None, camera: CameraLike = None, *,
@@ -740,16 +767,7 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
                                             h.rmse, True)
                 q0 = q_slid
         if polish:
-            polished, q1 = refine_and_check(model.check, rays, h.pose, settings,
-                                            acquisition=True)
-            # kept when it passes with no lower quality, or with more support by the slide's
-            # margin (2 % of the visible samples; a superquadric 3.0 -> 0.4 deg: quality
-            # 0.711 -> 0.704, supported samples 2715 -> 2798)
-            gain = max(0.02 * q0.visible_samples, settings.min_visible_samples)
-            if q1.passed and (q1.quality >= q0.quality or q1.support > q0.support + gain):
-                h.pose = polished
-                h.visibility = scene.visibility(model.surface, polished, fine_tolerance)
-                h.score = h.visibility.combined
+            polish_hypothesis(model, scene, h, q0, settings, fine_tolerance)
     if final_check and model.check is not None:
         settings = check_settings if check_settings is not None else TrackerSettings()
         rays = scene.rays()
