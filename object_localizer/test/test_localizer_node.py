@@ -84,21 +84,30 @@ def _first_verified_pose_after(node, poses, truths, t_start, timeout):
     """
     Time to the first pose after ``t_start`` and its ADD-S.
 
-    Seconds from ``t_start`` (monotonic) to the first pose received after it, and that
-    pose's ADD-S against the truth of the same stamp (None if none within ``timeout``).
+    Seconds from ``t_start`` (monotonic) to the first pose received after it, and the ADD-S
+    of the first pose after it whose stamp's truth this node received (None if none within
+    ``timeout``). The localizer can be sent a stream's first cloud before this node's truth
+    subscription has matched the stream (measured once in a fresh clone's CI: the first
+    pose's truth never arrived); the poses that follow it carry the error just as well.
     """
     import time
     n0 = len(poses)
     if not spin_until(node, lambda: len(poses) > n0, timeout):
         return None, None
     elapsed = time.monotonic() - t_start
-    got = poses[n0]
-    spin_until(node, lambda: any(t.header.stamp == got.header.stamp for t in truths), 2.0)
-    truth = [t for t in truths if t.header.stamp == got.header.stamp]
+
+    def scored():
+        stamps = {(t.header.stamp.sec, t.header.stamp.nanosec): t for t in truths}
+        for got in poses[n0:]:
+            truth = stamps.get((got.header.stamp.sec, got.header.stamp.nanosec))
+            if truth is not None:
+                return got, truth
+        return None
+    if not spin_until(node, lambda: scored() is not None, 5.0):
+        return elapsed, None
+    got, truth = scored()
     peg = prepare_model(load_obj(find_model('peg')))
-    err = add_s(pose_to_matrix(got.pose), pose_to_matrix(truth[0].pose), peg.points) \
-        if truth else None
-    return elapsed, err
+    return elapsed, add_s(pose_to_matrix(got.pose), pose_to_matrix(truth.pose), peg.points)
 
 
 @pytest.mark.process
