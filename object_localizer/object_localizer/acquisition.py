@@ -663,16 +663,11 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         as many elsewhere -- the check prefers poses 5-14 mm off that fit a surface patch
         displaced by 7 mm (``bench/localizer_accuracy.py``: 0.867 vs 0.917 within 1 mm) and
         let the slot block turned onto its side win on stereo clouds (README, Figures).
-    :param polish: the best pose is refined by the tracker's ICP (``tracking.refine_and_check``:
-        Tukey point-to-plane on the scene points on its rays, exact model normals) and
-        replaced when the result passes the tracker's check with a quality at least that of
-        the unpolished pose, or with more scene support (inliers minus contradicted samples)
-        by 2 % of the visible samples, the margin of ``tracking.slide_along_axes``. The
-        coarse stages end 2-3 mm off on some stereo clouds (a rail's or a link's length, a
-        superquadric's turn); on the stereo benchmark's 210 trials, paired, 197 -> 201
+    :param polish: the best pose is polished by the tracker's ICP (:func:`polish_hypothesis`).
+        The coarse stages end 2-3 mm off on some stereo clouds (a rail's or a link's length,
+        a superquadric's turn); on the stereo benchmark's 210 trials, paired, 197 -> 201
         within 2 mm / 2 deg, no trial lost (unguarded: 197, three lost; by quality alone:
-        200).
-        The tracker passes False: it refines and checks every candidate itself.
+        200). The tracker passes False: it refines and checks every candidate itself.
     :param check_settings: thresholds of that check (default ``TrackerSettings()``).
     :param exclude_points: (M, 3) [m, optical frame] surface samples of other objects already
         verified in this cloud: the scene points within ``exclude_radius`` [m] of them do not

@@ -55,10 +55,12 @@ import numpy as np
 from object_localizer.crop import crop_near, crop_rays, crop_window, nearest_depth_image
 from object_localizer.localization import localize, ModelTemplate, prepare_model, sample_surface
 from object_localizer.point_to_plane import icp_point_to_plane
-from object_localizer.symmetry import find_symmetries, nearest_equivalent_pose
+from object_localizer.symmetry import find_symmetries, mesh_symmetry, \
+    nearest_equivalent_pose
 import open3d as o3d
 from stereo_manip_tools.mesh_io import PolygonMesh
-from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
+from stereo_manip_tools.transforms import nearest_rotation, rotation_about_axis, rotation_angle, \
+    rotation_log
 
 __all__ = ['TrackState', 'TrackerSettings', 'TrackingModel', 'PoseQuality', 'TrackUpdate',
            'SceneCloud', 'prepare_tracking_model', 'predict_constant_velocity', 'carried_motion',
@@ -298,7 +300,7 @@ class TrackingModel:
         """
         Return the model's symmetry rotations (K, 3, 3) and the point they fix (3,) [m].
 
-        Found once, when first needed (:func:`object_localizer.symmetry.find_symmetries` on 3 mm
+        Found once, when first needed (:func:`object_localizer.symmetry.mesh_symmetry`: 3 mm
         samples of ``mesh``, 30-130 ms on the shipped models), about the mesh's exact surface
         centroid. Without a mesh: the identity alone.
         """
@@ -306,12 +308,8 @@ class TrackingModel:
             if self.mesh is None:
                 self._symmetries = (np.eye(3)[None], np.asarray(self.centre, dtype=float))
             else:
-                from object_localizer.symmetry import surface_centroid
-                from object_localizer.verification import sample_model_surface
-                samples = sample_model_surface(self.mesh, 0.003, max_samples=8000, seed=0)
-                found = find_symmetries(samples.points, samples.spacing)
-                self._symmetries = (found.rotations, surface_centroid(
-                    np.asarray(self.mesh.vertices, dtype=float), self.mesh.triangles()))
+                found, centre = mesh_symmetry(self.mesh)
+                self._symmetries = (found.rotations, centre)
         return self._symmetries
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
@@ -1608,9 +1606,8 @@ class ObjectTracker:
         if len(samples) < 2:
             return refined, q_refined, 'static: re-checked (refined)'
         stack = np.array(samples)
-        U, _, Vt = np.linalg.svd(stack[:, :3, :3].sum(axis=0))
         mean = np.eye(4)
-        mean[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        mean[:3, :3] = nearest_rotation(stack[:, :3, :3].sum(axis=0))
         mean[:3, 3] = stack[:, :3, 3].mean(axis=0)
         pose, q = self._refine_and_check(scene, mean, held, refine=False)
         if not q.passed:
@@ -1630,8 +1627,7 @@ class ObjectTracker:
         """
         if self.reference is None:
             return pose
-        turn = rotation_log(self.reference[:3, :3].T @ pose[:3, :3])
-        if np.linalg.norm(turn) < np.radians(22.0):
+        if rotation_angle(self.reference[:3, :3].T @ pose[:3, :3]) < np.radians(22.0):
             return pose
         rotations, centre = self.model.discrete_symmetries()
         return nearest_equivalent_pose(pose, self.reference, rotations, centre)

@@ -9,7 +9,7 @@ from object_localizer.tracking import check_pose, ObjectTracker, predict_constan
     prepare_tracking_model, principal_axes, SceneCloud, TrackerSettings, TrackState
 import pytest
 from stereo_manip_tools.mesh_io import find_model, load_obj
-from stereo_manip_tools.transforms import make_transform, rotation_about_axis
+from stereo_manip_tools.transforms import make_transform, rotation_about_axis, rotation_angle
 
 
 @pytest.fixture(scope='module')
@@ -143,8 +143,7 @@ def test_an_acquired_symmetric_pose_keeps_the_frame_of_the_reference():
     tracker.reset(make_transform(np.eye(3), [0.04, 0.0, 0.0]) @ T)
     res = tracker.update(observe(mesh, T, rng), 0)
     assert res.pose is not None and res.acquired, res.reason
-    turn = np.degrees(np.arccos(np.clip((np.trace(res.pose[:3, :3].T @ T[:3, :3]) - 1) / 2,
-                                        -1, 1)))
+    turn = np.degrees(rotation_angle(res.pose[:3, :3].T @ T[:3, :3]))
     assert turn < 0.5 and np.linalg.norm(res.pose[:3, 3] - T[:3, 3]) < 0.0005, (turn, res.pose)
 
 

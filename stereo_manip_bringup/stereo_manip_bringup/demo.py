@@ -241,15 +241,11 @@ def _symmetric_error(name: str) -> Callable[[np.ndarray, np.ndarray], float]:
     exact surface centroid: 0 for a pose equivalent to the truth (the peg tracked upside
     down), where ADD-S on the voxel template points reads 0.57 mm.
     """
-    from object_localizer.symmetry import find_symmetries, surface_centroid, symmetric_add
+    from object_localizer.symmetry import mesh_symmetry, symmetric_add
     if name not in _SYMMETRIES:
-        from object_localizer.verification import sample_model_surface
         from stereo_manip_tools.mesh_io import find_model, load_obj
-        mesh = load_obj(find_model(name))
-        samples = sample_model_surface(mesh, 0.003, max_samples=8000)
-        sym = find_symmetries(samples.points, samples.spacing)
-        _SYMMETRIES[name] = (sym, sym.rotation_set(),
-                             surface_centroid(np.asarray(mesh.vertices), mesh.triangles()))
+        sym, centre = mesh_symmetry(load_obj(find_model(name)))
+        _SYMMETRIES[name] = (sym, sym.rotation_set(), centre)
     sym, rotations, centre = _SYMMETRIES[name]
     pts = _model_points(name)
     return lambda est, true: symmetric_add(est, true, pts, sym, rotations, centre)
@@ -281,6 +277,7 @@ def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
     :returns: ``frames`` rows (stamp, add_s_m or None, state, flagged) and the counts.
     """
     from object_localizer.evaluation import add_s
+    from stereo_manip_tools.transforms import rotation_angle
     truth = _by_stamp(data[f'/objects/{name}/pose_truth'])
     poses = _by_stamp(data[pose_topic or f'/objects/{name}/pose'])
     status = _by_stamp(data.get(f'/objects/{name}/status', []))
@@ -294,10 +291,9 @@ def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
         state = _TRACK_STATE_NAMES.get(int(st.state), '?') if st is not None else None
         flagged = st is not None and int(st.state) not in _GOOD_STATES
         err = add_s(_pose(poses[stamp]), _pose(truth[stamp]), pts) if stamp in poses else None
-        turn = None
-        if stamp in poses:
-            c = (np.trace(_pose(poses[stamp])[:3, :3].T @ _pose(truth[stamp])[:3, :3]) - 1) / 2
-            turn = float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+        turn = float(np.degrees(rotation_angle(
+            _pose(poses[stamp])[:3, :3].T @ _pose(truth[stamp])[:3, :3]))) \
+            if stamp in poses else None
         rows.append({'stamp_ns': stamp, 'add_s_m': err, 'turn_deg': turn, 'state': state,
                      'flagged': flagged, 'reason': st.reason if st is not None else ''})
     errs = [r['add_s_m'] for r in rows if r['add_s_m'] is not None]
@@ -673,18 +669,25 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
             # the first trigger only once every link of the graph is there (else its frame
             # can be lost on the way: measured, the first peg frame had no pose and no status)
             wait_for_settled_graph(observer, [s.node_name for s, _ in procs])
+
             # one warm-up frame through the whole graph, not scored: the graph's own links
             # (localiser -> contact node, ...) can match after the observer has seen every
             # endpoint, and a message sent before is lost (measured: the first make demo of a
             # fresh clone lost the first peg pose on its way to the contact node, so frame 1
             # had no corrected pose)
-            n_stamps = len(data[stage.stamp_topic])
-            trigger.publish(Empty())
-            if spin_until(observer, lambda: len(data[stage.stamp_topic]) > n_stamps, 30.0):
+            def send_frame() -> Optional[bool]:
+                """Trigger a frame; None if the camera did not answer, else if it crossed."""
+                n_stamps = len(data[stage.stamp_topic])
+                trigger.publish(Empty())
+                if not spin_until(observer, lambda: len(data[stage.stamp_topic]) > n_stamps,
+                                  30.0):
+                    return None
                 stamp = data[stage.stamp_topic][-1][0]
-                spin_until(observer, lambda: all(
+                return spin_until(observer, lambda: all(
                     any(s == stamp for s, _ in data[t][-5:]) for t in stage.done_topics),
                     frame_timeout)
+
+            send_frame()
             for topic in data:
                 data[topic].clear()
                 receipts[topic].clear()
@@ -699,15 +702,9 @@ def run_stage(stage: Stage, frame_timeout: float = 20.0,
                     log(f'  [{stage.name}] time budget of {stage.budget_s:.0f} s used up '
                         f'after {k} of {stage.frames} frames')
                     break
-                n_stamps = len(data[stage.stamp_topic])
-                trigger.publish(Empty())
-                if not spin_until(observer, lambda: len(data[stage.stamp_topic]) > n_stamps,
-                                  30.0):
+                done = send_frame()
+                if done is None:
                     raise RuntimeError('the camera did not answer a trigger within 30 s')
-                stamp = data[stage.stamp_topic][-1][0]
-                done = spin_until(observer, lambda: all(
-                    any(s == stamp for s, _ in data[t][-5:]) for t in stage.done_topics),
-                    frame_timeout)
                 info['frames_timed_out'] += not done
                 if (k + 1) % 10 == 0 or k + 1 == stage.frames:
                     log(f'  [{stage.name}] frame {k + 1}/{stage.frames}: '
