@@ -127,7 +127,9 @@ class RecognitionOptions:
         block's front face held from the previous frame, the in-slot one three toggles away).
     :ivar angle_tolerance: angular slack of the pool's local tests and of the face-against-face
         grouping [rad]; None = max(0.1, 4 sigma_r).
-    :ivar beam: relations kept per frame by the temporal model.
+    :ivar beam: relations kept per frame by the temporal model (the cheapest paths; offline
+        also the relation explaining the frame best at each rank, whose path may be dearer
+        there because a contact change pays its transition cost at its first frame).
     :ivar ambiguity_margin: offline safe rule at contact changes: when a relation with fewer
         constraints than the Viterbi one explains a frame better (chi2 lower by more than
         ``AMBIGUITY_FIT``) and its min-marginal (least total cost over the whole track of a
@@ -977,6 +979,21 @@ class RelationTracker:
             new[h.state] = (c + fscore[h.state], prev)
         # keep a beam of the cheapest paths (costs relative to the best, to stay bounded)
         ordered = sorted(new.items(), key=lambda kv: kv[1][0])[:max(1, rec.options.beam) + 2]
+        if keep_history:
+            # offline, the relation explaining this frame best at each rank stays in the beam
+            # whatever its path's cost: a contact change pays its transition cost at its first
+            # frame, so there its path is dearer than those holding the old relation and was
+            # pruned, and the back-tracking could only make the change a frame late (a T-peg
+            # lifted 2.2 mm off its slot's floor held on it for a frame: 3.4 mm along the free
+            # direction)
+            best_of_rank: Dict[int, State] = {}
+            for s in new:
+                r = fc.hypotheses[s].rank
+                if r not in best_of_rank or fscore[s] < fscore[best_of_rank[r]]:
+                    best_of_rank[r] = s
+            kept = {s for s, _ in ordered}
+            ordered += [(s, new[s]) for s in best_of_rank.values() if s not in kept]
+            ordered.sort(key=lambda kv: kv[1][0])
         base = ordered[0][1][0]
         self._cost = {s: c - base for s, (c, _) in ordered}
         if keep_history:

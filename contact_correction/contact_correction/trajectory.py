@@ -496,6 +496,16 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
         r.relation_source = f'recognised, fallback {k + 1}'
         if r.corrected and over(r):
             refuse(r, f'fallback correction {size(r)}')
+        if r.corrected and chosen.state:
+            # another relation of the frame must not move the pose along a direction the
+            # chosen one leaves free (restored when the pose stays feasible, else the next
+            # fallback): a T-peg entering its slot whose chosen relation left 17 um of
+            # penetration was put back 2.2 mm to the slot's entrance by the block's front face
+            r2 = valid(r, chosen, depth=2)
+            if not r2.corrected:
+                first = first or r
+                continue
+            r = r2
         if r.corrected:
             r.status += f' (fallback: relation {k + 2} of the frame; the chosen one: ' \
                         f'{first.status if first else "free"})'

@@ -617,3 +617,66 @@ def test_online_choice_keeps_the_slot_contacts_a_flush_face_made_fail(models):
     T = make_transform(rotation_about_axis(w, float(np.linalg.norm(w))),
                        [0.0017054254, 0.0180672412, -0.0005016191])
     _assert_area_check_keeps_the_position_along_the_slot(models, T)
+
+
+def _benchmark_observations(models, name, level, seed):
+    """
+    Observed poses of ``bench/contact_tracks.py``'s run of track ``name``.
+
+    The benchmark's draws (its noise seed, tracks in :func:`make_tracks` order, levels 1 mm /
+    1 deg then 1.5 mm / 2 deg, three seeds each): returns (track, T_fixed, T_observed,
+    options stating the level's noise and rho 0.85).
+    """
+    rng = np.random.default_rng(20261124)
+    levels = [(1e-3, np.deg2rad(1.0)), (1.5e-3, np.deg2rad(2.0))]
+    for tr in make_tracks(models):
+        for li, (st, sr) in enumerate(levels):
+            for s in range(3):
+                Tf, _, To = noisy_track(tr, rng, st, sr)
+                if (tr.name, li, s) == (name, level, seed):
+                    return tr, Tf, To, RecognitionOptions(st, sr, noise_correlation=0.85)
+    raise AssertionError(f'no run {name} {level} {seed}')
+
+
+def _free_change(tr, k, Tf, T_observed, T_out):
+    """Largest change [m] of frame ``k`` along the free translations of its true relation."""
+    truth = detect_contact_relation(tr.moving, tr.fixed, tr.T_rel[k], I4, tolerance=1e-7)
+    A, _ = constraint_matrix(tr.moving, tr.fixed, tr.T_rel[k], truth)
+    F = constraint_directions(A, tr.moving.size).free_translation
+    d = relative_pose(T_out, Tf)[:3, 3] - relative_pose(T_observed, Tf)[:3, 3]
+    return float(np.abs(F @ d).max(initial=0.0))
+
+
+def test_offline_back_tracking_can_release_a_contact_at_its_first_frame(models):
+    """
+    The T-peg pulled up out of its slot (2.2 mm per frame), benchmark run 1 mm / 1 deg, seed 0.
+
+    At the first lifted frame the observation is 3.4 mm above the slot's floor. The release
+    pays the transition cost at that frame, so the forward pass used to prune the released
+    relation there (its path dearer than eight holding the floor) and the back-tracking
+    released a frame late: the floor held, the peg pulled 3.4 mm down along the direction the
+    stem walls leave free. Kept in the beam as the best of its rank, it is chosen there: no
+    change along a free direction over the insertion and the pull.
+    """
+    tr, Tf, To, opts = _benchmark_observations(models, 't_peg_pull_up', 0, 0)
+    res = correct_trajectory(tr.moving, tr.fixed, To, Tf, recognition=opts)
+    first = tr.phases.index('pulled_out')
+    for k in range(first - 6, first + 6):
+        assert _free_change(tr, k, Tf, To[k], res[k].T_moving) < 1e-6, (k, res[k].status)
+        assert penetration_depth(tr.moving, tr.fixed, res[k].T_moving, Tf, 0.002) < 1e-5
+
+
+def test_a_fallback_relation_keeps_the_chosen_relations_free_directions(models):
+    """
+    The T-peg entering its slot, benchmark run 1.5 mm / 2 deg, seed 1, third frame.
+
+    The chosen relation (the true one) leaves 17 um of penetration, the observation itself
+    penetrates nothing: the frame's next relation (the peg's back face on the block's front
+    face) was used and put the peg 2.2 mm back along the slot, the direction the chosen
+    relation leaves free. A fallback that moves the pose along it is not used (here: the
+    observation is passed through, the slot's direction as observed).
+    """
+    tr, Tf, To, opts = _benchmark_observations(models, 't_peg_pull_up', 1, 1)
+    res = correct_trajectory(tr.moving, tr.fixed, To[:6], Tf, recognition=opts)
+    assert _free_change(tr, 2, Tf, To[2], res[2].T_moving) < 1e-6, res[2].status
+    assert penetration_depth(tr.moving, tr.fixed, res[2].T_moving, Tf, 0.002) < 1e-5
