@@ -30,6 +30,7 @@ __all__ = [
     'ModelTemplate',
     'LocalizationResult',
     'sample_surface',
+    'settle_plane',
     'facing_sensor',
     'prepare_model',
     'prepare_scene',
@@ -138,6 +139,36 @@ def prepare_scene(points: np.ndarray, voxel_size: float) -> o3d.geometry.PointCl
     return pcd
 
 
+def settle_plane(points: np.ndarray, inliers: np.ndarray, distance: float,
+                 max_iterations: int = 20) -> np.ndarray:
+    """
+    Settle a RANSAC plane: least-squares refits until its inlier set no longer changes.
+
+    The plane through the inliers' centroid normal to their least-variance direction; its
+    inliers are the points within ``distance`` [m]; repeated until they repeat. Nearby RANSAC
+    planes of one surface (Open3D's threaded ``segment_plane`` returns one of them from run to
+    run with the same seed: 47 463 or 47 661 table points of one cloud) settle on the same
+    inlier set: the acquisitions that start from the scene repeat (11 of 54 differed between
+    two runs before).
+
+    :param points: (N, 3) points [m].
+    :param inliers: indices of the RANSAC plane's inliers (at least 3).
+    :return: sorted indices of the settled plane's inliers (those of the last refit when
+        ``max_iterations`` is reached).
+    """
+    P = np.asarray(points, dtype=float)
+    idx = np.sort(np.asarray(inliers, dtype=np.int64))
+    for _ in range(max_iterations):
+        Q = P[idx]
+        c = Q.mean(axis=0)
+        n = np.linalg.eigh(Q.T @ Q / len(Q) - np.outer(c, c))[1][:, 0]
+        new = np.flatnonzero(np.abs(P @ n - c @ n) <= distance)
+        if len(new) < 3 or np.array_equal(new, idx):
+            break
+        idx = new
+    return idx
+
+
 def remove_dominant_plane(scene: o3d.geometry.PointCloud, distance: float, min_extent: float,
                           min_fraction: float = 0.3, seed: int = 0) -> o3d.geometry.PointCloud:
     """
@@ -145,17 +176,22 @@ def remove_dominant_plane(scene: o3d.geometry.PointCloud, distance: float, min_e
 
     Drop the largest plane (a table) if it holds at least ``min_fraction`` of the points and
     spans more than ``min_extent`` [m] (so an object's own face is never taken for a table).
+    The RANSAC plane is settled by least squares (:func:`settle_plane`): Open3D's RANSAC runs
+    in threads and, with one seed, returns one of several nearby planes from run to run.
     """
     o3d.utility.random.seed(seed)
     if len(scene.points) < 3:
         return scene
     _, inliers = scene.segment_plane(distance, 3, 500)
+    points = np.asarray(scene.points)
+    if len(inliers) >= 3:
+        inliers = settle_plane(points, np.asarray(inliers), distance)
     if len(inliers) < min_fraction * len(scene.points):
         return scene
-    plane = np.asarray(scene.points)[inliers]
+    plane = points[inliers]
     if np.linalg.norm(plane.max(axis=0) - plane.min(axis=0)) < min_extent:
         return scene
-    return scene.select_by_index(inliers, invert=True)
+    return scene.select_by_index(np.asarray(inliers).tolist(), invert=True)
 
 
 def rough_localize(model: ModelTemplate, scene: o3d.geometry.PointCloud, *,

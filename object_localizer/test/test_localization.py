@@ -2,7 +2,8 @@
 
 import numpy as np
 from object_localizer.evaluation import add_s, sample_visible_surface
-from object_localizer.localization import localize, prepare_model, segment_object_points
+from object_localizer.localization import localize, prepare_model, segment_object_points, \
+    settle_plane
 import pytest
 from stereo_manip_tools.mesh_io import find_model, load_obj
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis, transform_points
@@ -79,3 +80,35 @@ def test_segmentation_keeps_the_object_and_drops_its_surroundings(models):
     far = far[np.linalg.norm(far - T[:3, 3], axis=1) > 0.2]
     seg = segment_object_points(np.vstack([obj, far, [[np.nan, 0, 1]]]), template, T, 0.005)
     assert len(seg) == len(obj) and np.allclose(np.sort(seg, axis=0), np.sort(obj, axis=0))
+
+
+def test_nearby_ransac_planes_settle_on_one_inlier_set():
+    """
+    Settle two slightly different planes of one table on the same inlier set.
+
+    Open3D's threaded RANSAC returns one of such planes from run to run with one seed; both
+    settle on the points within the distance of the least-squares plane: the table's, and of
+    the box standing on it only its bottom.
+    """
+    rng = np.random.default_rng(4)
+    table = np.column_stack([rng.uniform(-0.3, 0.3, 20000), rng.uniform(-0.2, 0.2, 20000),
+                             rng.normal(scale=0.0012, size=20000)])
+    box = np.column_stack([rng.uniform(-0.03, 0.03, 3000), rng.uniform(-0.03, 0.03, 3000),
+                           rng.uniform(0.0, 0.05, 3000)])
+    R = rotation_about_axis([0.3, -1.0, 0.2], 0.7)
+    P = transform_points(make_transform(R, [0.02, -0.05, 0.7]), np.vstack([table, box]))
+    distance = 0.004
+    starts = []
+    for tilt in (0.0, 0.004):     # [rad] about the table's x axis
+        n = R @ rotation_about_axis([1.0, 0.0, 0.0], tilt)[:, 2]
+        c = P[:20000].mean(axis=0)
+        starts.append(np.flatnonzero(np.abs((P - c) @ n) <= distance))
+    assert not np.array_equal(starts[0], starts[1])
+    settled = [settle_plane(P, s, distance) for s in starts]
+    assert np.array_equal(settled[0], settled[1])
+    Q = P[settled[0]]
+    normal = np.linalg.svd(Q - Q.mean(axis=0), full_matrices=False)[2][-1]
+    assert np.array_equal(settled[0], np.flatnonzero(np.abs((P - Q.mean(axis=0)) @ normal)
+                                                     <= distance))
+    assert np.isin(np.arange(20000), settled[0]).mean() > 0.99       # the table's points
+    assert len(settled[0]) < 20000 + 0.1 * 3000                       # the box's bottom only
