@@ -970,6 +970,20 @@ def refine_and_check(model: TrackingModel, scene: SceneCloud, start: np.ndarray,
     return pose, check_pose(m, pose, cone, s, prediction, others, acquisition)
 
 
+def pose_support(model: TrackingModel, scene: SceneCloud, pose: np.ndarray,
+                 settings: TrackerSettings) -> int:
+    """
+    Scene support of ``pose`` (4x4 model -> sensor) as :func:`refine_and_check` checks it.
+
+    :attr:`VisibleEvidence.support` (inliers minus contradicted samples) on the scene points
+    of the rays through the object (the check's cone), without the rest of the check: equal
+    to :attr:`PoseQuality.support` of ``refine_and_check(..., refine=False)``.
+    """
+    m, s = model, settings
+    cone = scene.cone(pose[:3, :3] @ m.centre + pose[:3, 3], m.radius + 2.0 * s.max_distance)
+    return visible_evidence(m, pose, cone, s).support
+
+
 def slide_along_axes(model: TrackingModel, scene: SceneCloud, pose: np.ndarray,
                      q: PoseQuality, settings: TrackerSettings,
                      others: Sequence[Tuple[TrackingModel, np.ndarray]] = (),
@@ -1099,7 +1113,8 @@ def make_acquirer(method: str, max_candidates: int = 6,
         exclude, radius = explained if explained is not None else (None, 0.0)
         hyps = acquisition.acquire_object(model.acquisition, scene, method=method, seed=seed,
                                           time_budget_s=time_budget_s, exclude_points=exclude,
-                                          exclude_radius=radius, polish=False)
+                                          exclude_radius=radius, polish=False,
+                                          tie_margin=0.0)
         return [h.pose for h in hyps[:max_candidates]]
     return acquire
 

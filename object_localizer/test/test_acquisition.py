@@ -137,7 +137,9 @@ def test_acquire_object_on_sampled_scene(meshes, symmetries, method):
     e_t, e_r = symmetric_pose_error(hyps[0].pose, T, symmetries['link_arm'])
     assert e_t < 0.002 and e_r < np.radians(2.0), (e_t, np.degrees(e_r))
     assert hyps[0].score > 0.5
-    assert all(a.score >= b.score for a, b in zip(hyps, hyps[1:]) if b.refined)
+    # the best first (a near-tie's runner-up when the check supports it more), then by score
+    rest = [h for h in hyps[1:] if h.refined]
+    assert all(a.score >= b.score for a, b in zip(rest, rest[1:]))
 
 
 def _arm_scene_with_spied_preparation(meshes, monkeypatch):
@@ -583,3 +585,39 @@ def test_nearest_equivalent_pose_turns_the_upside_down_peg_back(meshes, symmetri
         from scipy.spatial import cKDTree
         assert cKDTree(was).query(moved)[0].max() < 1e-9      # the same solid, same place
     assert nearest_equivalent_pose(T, reference, sym.rotations, centre) is T
+
+
+@pytest.mark.parametrize('scene_name,seed,frame,band,name,acquisition_seed', [
+    ('peg_in_hole', 0, 144, (48, 112), 'hole_block', 18),
+    ('primitives', 1, 157, (48, 80), 'superquadric', 179)])
+def test_a_near_tie_of_the_pixel_score_goes_to_the_pose_the_samples_support(
+        scene_name, seed, frame, band, name, acquisition_seed):
+    """
+    Trials of the acquisition benchmark whose best two poses score within 0.015.
+
+    hole_block's equivalent pose 1.7 mm off scored 0.778 against 0.768 for the one 0.1 mm
+    off; the superquadric turned 3 deg 0.926 against 0.915 for the one 0.5 deg off. Decided
+    by the check's scene support per surface sample (``tie_margin``) the best pose is within
+    2 mm / 2 deg of the truth (symmetry-aware); with the pixel score alone (``tie_margin`` 0)
+    it is not.
+    """
+    from stereo_depth.pipeline import compute_disparity, disparity_to_points
+    from stereo_depth.synthetic import render
+    left, right, truth = render(scene_name, frame, seed=seed)
+    cam = truth['camera']
+    disp = compute_disparity(left, right, 'block_matching', band[1], min_disparity=band[0])
+    pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'], cam['baseline'])
+    camera = {k: cam[k] for k in ('fx', 'fy', 'cx', 'cy', 'width', 'height', 'baseline')}
+    mesh = load_obj(find_model(name))
+    model = prepare_acquisition_model(mesh)
+    s = sample_model_surface(mesh, 0.003, max_samples=8000)
+    symmetry = find_symmetries(s.points, s.spacing)
+    errors = {}
+    for margin in (0.015, 0.0):
+        best = acquire_object(model, prepare_acquisition_scene(pts, camera=camera),
+                              seed=acquisition_seed, time_budget_s=float('inf'),
+                              tie_margin=margin)[0]
+        e_t, e_r = symmetric_pose_error(best.pose, truth['poses'][name], symmetry)
+        errors[margin] = (1e3 * e_t, np.degrees(e_r))
+    assert errors[0.015][0] < 2.0 and errors[0.015][1] < 2.0, errors
+    assert errors[0.0][0] > 2.0 or errors[0.0][1] > 2.0, errors
