@@ -278,8 +278,8 @@ class AcquisitionScene:
             hit = okk[np.arange(len(redo)), first]
             d[redo] = np.where(hit, dk[np.arange(len(redo)), first], np.inf)
             # all 16 within the bound and none in the crop: every crop point, exactly
+            Q = P[crop]
             for r in redo[~hit & np.isfinite(dk[:, -1])]:
-                Q = P[crop]
                 e = np.sqrt(((Q - X[r]) ** 2).sum(axis=1)).min() if len(Q) else np.inf
                 d[r] = e if e <= bound else np.inf
         return d
@@ -797,7 +797,7 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         rays = scene.rays()
         _, q0 = refine_and_check(model.check, rays, refined[0].pose, settings,
                                  acquisition=True, refine=False)
-        if pose_support(model.check, rays, refined[1].pose, settings) > q0.support:
+        if pose_support(model.check, rays, refined[1].pose, settings) > round(q0.support):
             refined[0], refined[1] = refined[1], refined[0]
             _, q0 = refine_and_check(model.check, rays, refined[0].pose, settings,
                                      acquisition=True, refine=False)
