@@ -7,6 +7,7 @@ corrected poses keep coming at a useful rate, and latency stays bounded because 
 drops old frames instead of queueing them.
 """
 
+import numpy as np
 import pytest
 
 from stereo_manip_bringup import demo
@@ -44,3 +45,14 @@ def test_free_running_graph_keeps_rate_and_bounded_latency():
     for name in ('peg', 'hole_block'):
         p = result['poses'][name]
         assert p['wrong_unflagged'] == 0, (name, p['beyond_error'], p['add_s_mm'])
+    # every scored frame carries the poses it was scored on (for an offline replay of the
+    # contact correction): they give its scores back
+    error = demo._symmetric_error('peg')
+    scored = [r for r in result['frames'] if 'relative_add_sym_corrected_m' in r]
+    assert scored
+    for r in scored:
+        P = {k: np.array(v) for k, v in r['poses'].items()}
+        to_block = np.linalg.inv(P['hole_block'])
+        for key, pose in (('observed', 'peg'), ('corrected', 'peg_corrected')):
+            assert error(to_block @ P[pose], P['peg_in_block_truth']) == pytest.approx(
+                r[f'relative_add_sym_{key}_m'], abs=1e-9)
