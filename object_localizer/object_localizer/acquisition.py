@@ -822,7 +822,6 @@ def acquire_object(model: Union[AcquisitionModel, PolygonMesh],
         if polish:
             polish_hypothesis(model, scene, h, q0, settings, fine_tolerance)
     if final_check and model.check is not None:
-        settings = check_settings if check_settings is not None else TrackerSettings()
         rays = scene.rays()
         for h in refined:
             c = h.pose[:3, :3] @ model.check.centre + h.pose[:3, 3]

@@ -200,15 +200,27 @@ def test_tracker_acquirer_prepares_a_cloud_once_for_its_objects(meshes, symmetri
         assert e_t < 0.002 and e_r < np.radians(2.0), (e_t, np.degrees(e_r))
 
 
+def _stereo_cloud(scene_name, frame, seed, num_disparities=160, min_disparity=0):
+    """
+    Run a frame of a synthetic scene through block matching (the benchmarks' stereo).
+
+    :return: the organised cloud (H, W, 3) [m, left optical frame], the camera mapping of
+        the truth (intrinsics and baseline), and the truth.
+    """
+    from stereo_depth.pipeline import compute_disparity, disparity_to_points
+    from stereo_depth.synthetic import render
+    left, right, truth = render(scene_name, frame, seed=seed)
+    cam = truth['camera']
+    disp = compute_disparity(left, right, 'block_matching', num_disparities,
+                             min_disparity=min_disparity)
+    return (disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'],
+                                cam['baseline']), cam, truth)
+
+
 @pytest.fixture(scope='module')
 def stereo_frame():
     """Frame 20 of peg_in_hole through the demo's stereo settings: an organised cloud."""
-    from stereo_depth.pipeline import compute_disparity, disparity_to_points
-    from stereo_depth.synthetic import render
-    left, right, truth = render('peg_in_hole', 20, seed=0)
-    cam = truth['camera']
-    disp = compute_disparity(left, right, 'block_matching', 160)
-    pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'], cam['baseline'])
+    pts, cam, truth = _stereo_cloud('peg_in_hole', 20, 0)
     return pts, cam, truth['poses']
 
 
@@ -236,12 +248,7 @@ def test_slot_block_with_its_peg_is_not_turned_onto_its_side(seed, frame, acquis
     (5 mm, the project's wrong-pose line); the 2 mm accuracy is the benchmark's, over 210
     trials (with two voting rounds frame 31 ends 2.3 mm off, the right way up).
     """
-    from stereo_depth.pipeline import compute_disparity, disparity_to_points
-    from stereo_depth.synthetic import render
-    left, right, truth = render('peg_in_slot', frame, seed=seed)
-    cam = truth['camera']
-    disp = compute_disparity(left, right, 'block_matching', 160)
-    pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'], cam['baseline'])
+    pts, cam, truth = _stereo_cloud('peg_in_slot', frame, seed)
     mesh = load_obj(find_model('slot_block'))
     samples = sample_model_surface(mesh, 0.003, max_samples=8000)
     sym = find_symmetries(samples.points, samples.spacing)
@@ -266,12 +273,7 @@ def test_partly_hidden_object_outranks_a_fully_visible_wrong_pose(
     off. Ranked by the tracker's per-sample check (occluded samples not counted, normal
     distances, stereo visibility) the right poses come first.
     """
-    from stereo_depth.pipeline import compute_disparity, disparity_to_points
-    from stereo_depth.synthetic import render
-    left, right, truth = render(scene_name, frame, seed=seed)
-    cam = truth['camera']
-    disp = compute_disparity(left, right, 'block_matching', 160)
-    pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'], cam['baseline'])
+    pts, cam, truth = _stereo_cloud(scene_name, frame, seed)
     mesh = load_obj(find_model(name))
     samples = sample_model_surface(mesh, 0.003, max_samples=8000)
     sym = find_symmetries(samples.points, samples.spacing)
@@ -297,12 +299,7 @@ def test_stereo_aware_score_ranks_the_peg_in_its_hole_above_the_peg_lying_on_the
     on main). With the baseline the score takes those pixels as unmeasurable (unknown), so
     the truth ranks first; a real violation (a pose shifted off the peg) still counts.
     """
-    from stereo_depth.pipeline import compute_disparity, disparity_to_points
-    from stereo_depth.synthetic import render
-    left, right, truth = render('peg_in_hole', 46, seed=2)
-    cam = truth['camera']
-    disp = compute_disparity(left, right, 'block_matching', 160)
-    pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'], cam['baseline'])
+    pts, cam, truth = _stereo_cloud('peg_in_hole', 46, 2)
     surface = sample_model_surface(meshes['peg'])
     T = np.asarray(truth['poses']['peg'])
     # the peg lying on the block's top face (block frame), as main's acquisition returned it
@@ -524,13 +521,7 @@ def test_a_coarse_pose_is_polished_by_the_trackers_icp():
     """
     from object_localizer.acquisition import Hypothesis, polish_hypothesis
     from object_localizer.tracking import refine_and_check, TrackerSettings
-    from stereo_depth.pipeline import compute_disparity, disparity_to_points
-    from stereo_depth.synthetic import render
-    left, right, truth = render('prismatic_pair', 128, seed=0)
-    cam = truth['camera']
-    disp = compute_disparity(left, right, 'block_matching', 112, min_disparity=48)
-    pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'], cam['baseline'])
-    camera = {k: cam[k] for k in ('fx', 'fy', 'cx', 'cy', 'width', 'height', 'baseline')}
+    pts, camera, truth = _stereo_cloud('prismatic_pair', 128, 0, 112, 48)
     settings = TrackerSettings()
     for name, seed in (('slider_base', 96), ('slider_carriage', 97)):
         mesh = load_obj(find_model(name))
@@ -601,13 +592,7 @@ def test_a_near_tie_of_the_pixel_score_goes_to_the_pose_the_samples_support(
     2 mm / 2 deg of the truth (symmetry-aware); with the pixel score alone (``tie_margin`` 0)
     it is not.
     """
-    from stereo_depth.pipeline import compute_disparity, disparity_to_points
-    from stereo_depth.synthetic import render
-    left, right, truth = render(scene_name, frame, seed=seed)
-    cam = truth['camera']
-    disp = compute_disparity(left, right, 'block_matching', band[1], min_disparity=band[0])
-    pts = disparity_to_points(disp, cam['fx'], cam['fy'], cam['cx'], cam['cy'], cam['baseline'])
-    camera = {k: cam[k] for k in ('fx', 'fy', 'cx', 'cy', 'width', 'height', 'baseline')}
+    pts, camera, truth = _stereo_cloud(scene_name, frame, seed, band[1], band[0])
     mesh = load_obj(find_model(name))
     model = prepare_acquisition_model(mesh)
     s = sample_model_surface(mesh, 0.003, max_samples=8000)
