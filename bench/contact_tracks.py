@@ -13,8 +13,11 @@ Methods, in the same run on the same observations:
     model selection + Viterbi over the whole track, the safe rule at ambiguous contact
     changes (only the contacts common to the competing relations enforced), push-out of a
     penetrating observation before other relations, fallbacks;
-  * ``recognised_online``: ``ContactCorrector`` (the node): the same with the online temporal
-    model (hysteresis);
+  * ``recognised_online``: ``ContactCorrector`` (the node's ``corrected_pose``): the same
+    with the online temporal model (hysteresis);
+  * ``recognised_fixed_lag``: ``ContactCorrector(lag=FIXED_LAG)`` (the node's
+    ``corrected_pose_smoothed``): each frame decided by the back-tracking once the next
+    ``FIXED_LAG`` frames are in;
   * ``peer_per_frame_detection`` (main): each frame's relation detected with one tolerance
     (2 mm, the node's default), no model selection, no temporal model.
 
@@ -22,7 +25,7 @@ Per frame: relation correct (the relation used spans the true relation's constra
 all its contacts hold at the true pose), penetration after correction, change along the true
 relation's free translations, the true contacts' distances before / after (error along the
 constrained directions), ADD (mean model-vertex distance to the truth, fixed frame) before /
-after, time per frame (online: recognition + correction, thread CPU time).
+after, time per frame (online and fixed-lag: recognition + correction, thread CPU time).
 
 Run: ``python bench/contact_tracks.py`` (``--quick``: one seed; ``--seed N``: another noise
 seed, to validate settings on tracks they were not tuned on). Writes
@@ -57,7 +60,10 @@ I4 = np.eye(4)
 #: to the recognition as it is stated the sigmas (``RecognitionOptions.noise_correlation``)
 RHO = 0.85
 LEVELS = [('1mm_1deg', 1e-3, np.deg2rad(1.0)), ('1.5mm_2deg', 1.5e-3, np.deg2rad(2.0))]
-METHODS = ('recognised_offline', 'recognised_online', 'peer_per_frame_detection')
+#: frames the fixed-lag method waits (the node's ``smoothing_lag`` default)
+FIXED_LAG = 3
+RECOGNISED = ('recognised_offline', 'recognised_online', 'recognised_fixed_lag')
+METHODS = RECOGNISED + ('peer_per_frame_detection',)
 
 
 def add_error(m, T_est_rel, T_true_rel) -> float:
@@ -148,6 +154,15 @@ def run(quick: bool, dump: str = '', seed_base: int = SEED) -> None:
                     times.append(time.perf_counter() - t0)
                     cpus.append(time.thread_time() - c0)
                 res['recognised_online'] = online
+                cor = ContactCorrector(m, f, opts, lag=FIXED_LAG)
+                lagged, lcpus = [], []
+                for k in range(len(To)):
+                    c0 = time.thread_time()
+                    lagged += cor.push(To[k], Tf, k)
+                    lcpus.append(time.thread_time() - c0)
+                lagged += cor.flush()
+                assert [k for k, _ in lagged] == list(range(len(To)))
+                res['recognised_fixed_lag'] = [r for _, r in lagged]
                 peer, ptimes, pcpus = [], [], []
                 for k in range(len(To)):
                     t0, c0 = time.perf_counter(), time.thread_time()
@@ -164,6 +179,7 @@ def run(quick: bool, dump: str = '', seed_base: int = SEED) -> None:
                            'add_observed': add_error(m, T_obs, T_true),
                            'penetration_observed': penetration_depth(m, f, To[k], Tf, 0.002),
                            'time_online': times[k], 'cpu_online': cpus[k],
+                           'cpu_fixed_lag': lcpus[k],
                            'time_peer': ptimes[k], 'cpu_peer': pcpus[k],
                            'time_offline_mean': off_time}
                     # pose error in the fixed frame (moving origin; rotation vector), in units
@@ -267,7 +283,9 @@ def summarise(rows: List[dict], quick: bool, seed_base: int = SEED) -> None:
     t_on = np.array([r['cpu_online'] for r in rows]) * 1e3
     t_on_wall = np.array([r['time_online'] for r in rows]) * 1e3
     t_peer = np.array([r['cpu_peer'] for r in rows]) * 1e3
+    t_lag = np.array([r['cpu_fixed_lag'] for r in rows]) * 1e3
     summary['time_online_cpu_ms'] = pct(t_on)
+    summary['time_fixed_lag_cpu_ms'] = pct(t_lag)
     summary['time_online_wall_ms'] = pct(t_on_wall)
     summary['time_peer_cpu_ms'] = pct(t_peer)
     summary['time_offline_wall_ms_mean_per_frame'] = float(
@@ -277,7 +295,7 @@ def summarise(rows: List[dict], quick: bool, seed_base: int = SEED) -> None:
     summary['frames_in_contact'] = len(contact)
 
     goals = []
-    for meth in ('recognised_offline', 'recognised_online'):
+    for meth in RECOGNISED:
         s = summary[meth]
         goals += [
             goal(f'{meth}: relation_correct_fraction_in_contact', 0.98, '>=',
@@ -297,11 +315,15 @@ def summarise(rows: List[dict], quick: bool, seed_base: int = SEED) -> None:
                       'correction)', 5.0, '<=', summary['time_online_cpu_ms']['median']))
     goals.append(goal('time_per_frame_online_cpu_ms_p95', 5.0, '<=',
                       summary['time_online_cpu_ms']['p95']))
+    goals.append(goal('time_per_frame_fixed_lag_cpu_ms_median', 5.0, '<=',
+                      summary['time_fixed_lag_cpu_ms']['median']))
+    goals.append(goal('time_per_frame_fixed_lag_cpu_ms_p95', 5.0, '<=',
+                      summary['time_fixed_lag_cpu_ms']['p95']))
     for g in goals:
         print(f"{'MET  ' if g['met'] else 'UNMET'} {g['metric']}: {g['value']:.4g} "
               f"{g['comparison']} {g['target']}")
     p = summary['peer_per_frame_detection']
-    for meth in ('recognised_offline', 'recognised_online'):
+    for meth in RECOGNISED:
         s = summary[meth]
         print(f"{meth}: guarded frames {s['guarded_frames']}, free change "
               f"median/p95/max {s['free_translation_change_m'].get('median', 0):.3g}/"
@@ -317,11 +339,15 @@ def summarise(rows: List[dict], quick: bool, seed_base: int = SEED) -> None:
     name = 'contact_tracks' if seed_base == SEED else f'contact_tracks_seed{seed_base}'
     write_report(name, goals, summary=summary, quick=quick, noise_seed=seed_base,
                  loadavg=list(os.getloadavg()),
+                 fixed_lag_frames=FIXED_LAG,
                  notes='Timing: thread CPU time per frame of ContactCorrector.update (the node '
                        'path: recognition, temporal model, evidence rule, correction with the '
-                       'correction-size guard, penetration checks); contended machine, see '
-                       'loadavg. Accuracy goals on both the offline command (Viterbi) and the '
-                       'online node path. Defaults: evidence_chi2 9, max_correction_sigma 4.')
+                       'correction-size guard, penetration checks) and of ContactCorrector.push '
+                       'with lag FIXED_LAG (the back-tracking and the correction of the frame '
+                       'it decides); contended machine, see loadavg. Accuracy goals on the '
+                       'offline command (Viterbi), the online node path (corrected_pose) and '
+                       'the fixed-lag one (corrected_pose_smoothed). Defaults: evidence_chi2 '
+                       '9, max_correction_sigma 4.')
 
 
 def main() -> None:

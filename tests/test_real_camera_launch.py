@@ -87,7 +87,8 @@ def test_launch_builds_the_graph_from_arguments_and_params(monkeypatch):
         '/my_cam/left/image_rect'
     assert dict(nodes['contact_correction']['remappings']) == {
         'moving_pose': 'objects/peg/pose', 'fixed_pose': 'objects/hole_block/pose',
-        'corrected_pose': 'objects/peg/pose_corrected'}
+        'corrected_pose': 'objects/peg/pose_corrected',
+        'corrected_pose_smoothed': 'objects/peg/pose_corrected_smoothed'}
     assert dict(nodes['joint_estimator']['remappings'])['link_b_pose'] == \
         'objects/link_base/pose'
     assert nodes['joint_estimator']['condition'] == ('if', 'use_joint')

@@ -11,6 +11,13 @@ Publications, one set per ``moving_pose`` message:
   - ``contact_state`` (stereo_manip_msgs/ContactState, header frame = ``fixed_frame``): the
     relation, ranks, constrained / free directions, penetration, residual, status;
   - ``corrected_track`` (nav_msgs/Path): the last ``track_length`` output poses.
+Publication ``smoothing_lag`` frames late (fixed-lag smoothing; while it has subscribers):
+  - ``corrected_pose_smoothed`` (PoseStamped, the input's header): each frame corrected with
+    the relation the temporal model's back-tracking chooses once the ``smoothing_lag`` frames
+    after it are in (a contact released or made is then seen at its first frame; online it
+    is held a frame or two longer). Waiting frames are published at once when no
+    ``moving_pose`` arrives for ``smoothing_timeout`` seconds, when the stamps go back, and
+    when a parameter of the correction changes.
 Service ``correct_trajectory`` (stereo_manip_msgs/CorrectTrajectory) corrects a batch.
 
 The relation of each frame is recognised (``recognition`` true: model selection against the
@@ -27,6 +34,7 @@ the counts are appended to every ContactState status.
 from __future__ import annotations
 
 from collections import deque
+import time
 from typing import Dict, List, Tuple
 
 from contact_correction.contact_relation import parse_relation
@@ -180,6 +188,13 @@ class ContactCorrectionNode(Node):
         self.declare_parameter('element_margin', 1e-6, _float(
             'largest distance [m] of a corrected contact point outside its element (given / '
             'detected relations; recognised ones use the search margin)', 0.0, 0.05))
+        self.declare_parameter('smoothing_lag', 3, _int(
+            'corrected_pose_smoothed: frames a corrected pose waits for the evidence of the '
+            'frames after it (fixed-lag smoothing of the contact relation); 0: not published',
+            0, 100))
+        self.declare_parameter('smoothing_timeout', 0.5, _float(
+            'corrected_pose_smoothed: the frames still waiting are published when no '
+            'moving_pose arrives for this long [s]', 0.01, 60.0))
         self.declare_parameter('relation', '', _string(
             "explicit contact relation, e.g. 'vertex 0 - face 4; face 2 - vertex 15; edge 3 - "
             "edge 7'; empty: recognised / detected"))
@@ -209,9 +224,12 @@ class ContactCorrectionNode(Node):
                 self.model_error = self.model_error or str(exc)
                 self.get_logger().error(f'{exc}; every pose will be passed through')
         self.counts: Dict[str, int] = {'received': 0, 'rejected': 0, 'no_fixed_pose': 0,
-                                       'corrected': 0, 'passed_through': 0, 'guarded': 0}
+                                       'corrected': 0, 'passed_through': 0, 'guarded': 0,
+                                       'smoothed': 0}
         self.track: deque = deque(maxlen=int(g('track_length').value))
         self.corrector: ContactCorrector | None = None
+        self.smoother: ContactCorrector | None = None     # the fixed-lag one
+        self._last_moving = time.monotonic()
         self._units_warned = False
         self._last_stamp: int | None = None
         self.pose_pub = self.create_publisher(PoseStamped, 'corrected_pose', 10)
@@ -220,6 +238,8 @@ class ContactCorrectionNode(Node):
                        lambda: f'{object_frame(g("moving_object").value)}_corrected')
         self.state_pub = self.create_publisher(ContactState, 'contact_state', 10)
         self.track_pub = self.create_publisher(Path, 'corrected_track', 10)
+        self.smoothed_pub = self.create_publisher(PoseStamped, 'corrected_pose_smoothed', 10)
+        self.create_timer(0.05, self._on_smoothing_timer)
         self.create_subscription(PoseStamped, 'moving_pose',
                                  self.rejections.guard(self._on_moving, 'moving_pose'),
                                  qos_profile_sensor_data)
@@ -262,8 +282,10 @@ class ContactCorrectionNode(Node):
                     parse_relation(str(p.value))
                 except ValueError as exc:
                     return SetParametersResult(successful=False, reason=str(exc))
-            if p.name in _RECOGNITION_PARAMETERS:
+            if p.name in _RECOGNITION_PARAMETERS or p.name in ('smoothing_lag', 'relation'):
                 self.corrector = None          # rebuilt with the new values
+                self._flush_smoothed()         # the frames waiting, decided with the old ones
+                self.smoother = None
             if p.name == 'fixed_pose_static' and p.value:
                 try:
                     static_pose(list(p.value))
@@ -305,8 +327,12 @@ class ContactCorrectionNode(Node):
     def _fixed_frame(self) -> str:
         return self.get_parameter('fixed_frame').value or self.get_parameter('fixed_object').value
 
-    def _correct(self, T_moving: np.ndarray, T_fixed: np.ndarray, stamp: int = 0
-                 ) -> CorrectionResult:
+    def _temporal(self) -> bool:
+        """Tell whether the relation is recognised over the track (else per frame)."""
+        return not (self.moving is None or self.fixed is None or self.model_error
+                    or self._relation() is not None or not self.get_parameter('recognition').value)
+
+    def _correct(self, T_moving: np.ndarray, T_fixed: np.ndarray) -> CorrectionResult:
         if self.moving is None or self.fixed is None or self.model_error:
             return CorrectionResult(T_moving=T_moving, status=self.model_error)
         relation = self._relation()
@@ -319,11 +345,38 @@ class ContactCorrectionNode(Node):
         if self.corrector is None:
             self.corrector = ContactCorrector(self.moving, self.fixed, recognition,
                                               **self._options())
-        if self._last_stamp is not None and stamp < self._last_stamp:
-            self.get_logger().info('moving_pose stamp went back: contact states reset')
-            self.corrector.reset()
-        self._last_stamp = stamp
         return self.corrector.update(T_moving, T_fixed)
+
+    def _smooth(self, T_moving: np.ndarray, T_fixed: np.ndarray, header: Header,
+                online: CorrectionResult) -> None:
+        """Feed the fixed-lag corrector; publish the frames it decides."""
+        lag = int(self.get_parameter('smoothing_lag').value)
+        if lag <= 0 or self.smoothed_pub.get_subscription_count() == 0:
+            self.smoother = None        # nobody listens: nothing is waiting to be published
+            return
+        if not self._temporal():
+            # no temporal model (given / detected relation, no models): nothing to wait for
+            self._publish_smoothed([(header, online)])
+            return
+        if self.smoother is None:
+            self.smoother = ContactCorrector(self.moving, self.fixed, self._recognition(),
+                                             lag=lag, **self._options())
+        self._publish_smoothed(self.smoother.push(T_moving, T_fixed, header))
+
+    def _publish_smoothed(self, results: List[Tuple[Header, CorrectionResult]]) -> None:
+        for header, r in results:
+            self.counts['smoothed'] += 1
+            self.smoothed_pub.publish(PoseStamped(header=header, pose=matrix_to_pose(r.T_moving)))
+
+    def _flush_smoothed(self) -> None:
+        """Decide and publish the frames waiting in the fixed-lag corrector."""
+        if getattr(self, 'smoother', None) is not None:
+            self._publish_smoothed(self.smoother.flush())
+
+    def _on_smoothing_timer(self) -> None:
+        if self.smoother is not None and self.smoother.pending and time.monotonic() \
+                - self._last_moving > self.get_parameter('smoothing_timeout').value:
+            self._flush_smoothed()
 
     # --- streaming input ------------------------------------------------------------------
 
@@ -363,7 +416,15 @@ class ContactCorrectionNode(Node):
                 self.get_logger().warning(
                     f'moving object {dist:.4g} m from the fixed one ({dist / self.moving.size:.0f}'
                     'x its size): poses in millimetres? (REP 103: metres; warned once)')
-        result = self._correct(T, self.fixed_T, stamp)
+        self._last_moving = time.monotonic()
+        if self._last_stamp is not None and stamp < self._last_stamp:
+            self.get_logger().info('moving_pose stamp went back: contact states reset')
+            self._flush_smoothed()
+            for c in (self.corrector, self.smoother):
+                if c is not None:
+                    c.reset()
+        self._last_stamp = stamp
+        result = self._correct(T, self.fixed_T)
         self.counts['corrected' if result.corrected else 'passed_through'] += 1
         if result.guarded:
             self.counts['guarded'] += 1
@@ -386,6 +447,7 @@ class ContactCorrectionNode(Node):
             stamps = [s for s, _ in self.track]
             self.track_pub.publish(matrices_to_path(np.array([M for _, M in self.track]),
                                                     frame, stamps))
+        self._smooth(T, self.fixed_T, header, result)
 
     # --- service --------------------------------------------------------------------------
 

@@ -677,35 +677,119 @@ def _really_penetrating(moving: Polyhedron, fixed: Polyhedron, T_rel: np.ndarray
 
 class ContactCorrector:
     """
-    Online correction of a track: recognition with the temporal model, then correction.
+    Correction of a track as it arrives: recognition with the temporal model, then correction.
+
+    ``lag`` 0 (online, :meth:`update`): each frame is corrected as it arrives, with the
+    relation at the end of the temporal model's least-cost path (hysteresis) and the online
+    checks of that choice. A contact change is seen only once the frames after it confirm
+    it: the first frame after a release is still corrected with the released contact.
+
+    ``lag`` L > 0 (fixed-lag smoothing, :meth:`push`): a frame is corrected once the L frames
+    after it have arrived, with the relation the offline Viterbi back-tracking chooses over
+    the frames seen so far (as :func:`correct_trajectory`, without its second pass). The
+    result comes L frames late; at a gap, :meth:`flush` decides the frames still waiting.
 
     :param moving: moving object's polyhedron.
     :param fixed: fixed object's polyhedron.
     :param recognition: recognition options (noise model, margins, switching cost).
+    :param lag: frames a result waits for the evidence of the frames after it (0: online).
     :param kwargs: correction options for :func:`~contact_correction.correction.correct_pose`.
+    :raises ValueError: on a negative ``lag``.
     """
 
     def __init__(self, moving: Polyhedron, fixed: Polyhedron,
-                 recognition: Optional[RecognitionOptions] = None, **kwargs: Any) -> None:
+                 recognition: Optional[RecognitionOptions] = None, lag: int = 0,
+                 **kwargs: Any) -> None:
+        if int(lag) != lag or lag < 0:
+            raise ValueError(f'lag must be a whole number of frames >= 0, got {lag}')
         self.moving, self.fixed = moving, fixed
         self.recognizer = RelationRecognizer(moving, fixed, recognition)
+        # the area check of every candidate where the back-tracking chooses (as offline);
+        # online only the chosen relation is checked (RelationTracker.update)
+        self.recognizer.area_check = bool(lag and self.recognizer.options.area_contact_check)
         self.tracker = RelationTracker(self.recognizer)
+        self.lag = int(lag)
         self.kwargs = kwargs
+        #: frames waiting for their relation: (tag, T_moving, T_fixed, candidates, guard)
+        self._pending: List[Tuple[Any, np.ndarray, np.ndarray, FrameCandidates,
+                                  np.ndarray]] = []
+
+    @property
+    def pending(self) -> int:
+        """Frames pushed whose result has not been returned yet."""
+        return len(self._pending)
 
     def reset(self) -> None:
-        """Forget the track's contact states (after a gap or a jump in time)."""
+        """Forget the track's contact states and the frames waiting (after a jump in time)."""
         self.tracker.reset()
+        self._pending.clear()
 
     def update(self, T_moving: np.ndarray, T_fixed: np.ndarray) -> CorrectionResult:
-        """Correct the next frame of the track."""
+        """
+        Correct the next frame of the track online (``lag`` 0).
+
+        :param T_moving: observed moving pose (4, 4).
+        :param T_fixed: fixed pose (4, 4), in the same frame.
+        :raises ValueError: with ``lag`` > 0 (use :meth:`push`).
+        """
+        if self.lag:
+            raise ValueError(f'ContactCorrector with lag {self.lag}: results come late, '
+                             'use push() and flush()')
+        return self.push(T_moving, T_fixed)[0][1]
+
+    def push(self, T_moving: np.ndarray, T_fixed: np.ndarray, tag: Any = None
+             ) -> List[Tuple[Any, CorrectionResult]]:
+        """
+        Add the next frame; return the frames decided by it, oldest first, with their tags.
+
+        ``lag`` 0: this frame. ``lag`` L: the frame L frames back, once there is one. A frame
+        with a non-finite pose decides every waiting frame (a gap: the temporal model starts
+        again after it) and is returned itself, passed through.
+
+        :param T_moving: observed moving pose (4, 4).
+        :param T_fixed: fixed pose (4, 4), in the same frame.
+        :param tag: anything identifying the frame to the caller (e.g. its stamp).
+        """
         T_moving = np.asarray(T_moving, dtype=float)
         T_fixed = np.asarray(T_fixed, dtype=float)
         if not (np.all(np.isfinite(T_moving)) and np.all(np.isfinite(T_fixed))):
-            return correct_pose(self.moving, self.fixed, T_moving, T_fixed, **self.kwargs)
-        h, fc = self.tracker.update(T_moving, T_fixed)
-        return correct_recognised(self.moving, self.fixed, T_moving, T_fixed, h, fc,
-                                  self.recognizer.last_guard(), self.recognizer.margin,
-                                  guard_limits(self.recognizer.options), **self.kwargs)
+            out = self.flush()
+            self.tracker.reset()
+            return out + [(tag, correct_pose(self.moving, self.fixed, T_moving, T_fixed,
+                                             **self.kwargs))]
+        h, fc = self.tracker.update(T_moving, T_fixed, keep_history=self.lag > 0)
+        self._pending.append((tag, T_moving, T_fixed, fc, self.recognizer.last_guard()))
+        if not self.lag:
+            return self._correct([h])
+        if len(self._pending) <= self.lag:
+            return []
+        # the back-tracking needs the frames from the one decided on: the oldest is dropped
+        out = self._correct(self.tracker.backtrack()[:1])
+        self.tracker.history.pop(0)
+        return out
+
+    def flush(self) -> List[Tuple[Any, CorrectionResult]]:
+        """
+        Decide the waiting frames now, with the evidence so far (oldest first, with tags).
+
+        The temporal model's state is kept: frames pushed after a flush continue the track.
+        """
+        if not self._pending:
+            return []
+        out = self._correct(self.tracker.backtrack())
+        self.tracker.history.clear()
+        return out
+
+    def _correct(self, chosen: Sequence[Hypothesis]) -> List[Tuple[Any, CorrectionResult]]:
+        """Correct the oldest waiting frames, one per relation of ``chosen``."""
+        out = []
+        for h in chosen:
+            tag, T_moving, T_fixed, fc, guard = self._pending.pop(0)
+            out.append((tag, correct_recognised(
+                self.moving, self.fixed, T_moving, T_fixed, h, fc, guard,
+                self.recognizer.margin, guard_limits(self.recognizer.options),
+                **self.kwargs)))
+        return out
 
 
 def correct_trajectory(moving: Polyhedron, fixed: Polyhedron, moving_poses: np.ndarray,

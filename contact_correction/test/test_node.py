@@ -2,6 +2,7 @@
 
 
 from contact_correction.contact_correction_node import ContactCorrectionNode
+from contact_correction.trajectory import ContactCorrector
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
@@ -121,6 +122,53 @@ def test_guarded_correction_is_counted_not_applied(ros_node):
         assert not states[8].corrected and 'guard' in states[8].status
         assert '1 guarded' in states[8].status
         assert pose_to_matrix(poses[8].pose)[2, 3] == pytest.approx(0.005, abs=1e-9)
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.ros
+def test_smoothed_poses_come_lag_frames_late_with_their_headers(ros_node):
+    """
+    ``corrected_pose_smoothed``: the fixed-lag corrector's results, ``smoothing_lag`` late.
+
+    The peg resting beside the hole, then 3 mm up (noise 0.5 mm / 0.5 deg): frame j's
+    smoothed pose comes with frame j + 2 (lag 2), under frame j's header, and equals
+    ``ContactCorrector(lag=2)``'s; the last two are published once no pose has come for
+    ``smoothing_timeout``.
+    """
+    node = ContactCorrectionNode(context=ros_node.context, parameter_overrides=[
+        Parameter('moving_object', value='peg'), Parameter('fixed_object', value='hole_block'),
+        Parameter('fixed_pose_static', value=STATIC), Parameter('smoothing_lag', value=2),
+        Parameter('smoothing_timeout', value=0.3)])
+    try:
+        smoothed, poses = [], []
+        ros_node.create_subscription(PoseStamped, 'corrected_pose_smoothed', smoothed.append, 10)
+        ros_node.create_subscription(PoseStamped, 'corrected_pose', poses.append, 10)
+        pub = ros_node.create_publisher(PoseStamped, 'moving_pose', 10)
+        assert _spin_both([ros_node, node], lambda: pub.get_subscription_count() > 0
+                          and node.smoothed_pub.get_subscription_count() > 0)
+        rng = np.random.default_rng(4)
+        track = []
+        for k in range(10):
+            w = rng.normal(size=3) * np.deg2rad(0.5)
+            up = 0.003 if k >= 7 else 0.0
+            track.append(make_transform(rotation_about_axis(w, np.linalg.norm(w)),
+                                        np.array([0.05, 0.0, up]) + rng.normal(size=3) * 5e-4))
+        for k, T in enumerate(track):
+            pub.publish(_stamped(T, (k + 1) * 10**7))
+            assert _spin_both([ros_node, node], lambda: len(poses) > k
+                              and len(smoothed) >= k - 1, 10)
+            assert len(smoothed) == max(k - 1, 0)          # two frames late
+        assert _spin_both([ros_node, node], lambda: len(smoothed) == len(track), 5.0)
+        assert node.counts['smoothed'] == len(track)
+        reference = ContactCorrector(node.moving, node.fixed, node._recognition(), lag=2,
+                                     **node._options())
+        expected = [r for T in track for _, r in reference.push(T, np.eye(4))]
+        expected += [r for _, r in reference.flush()]
+        for k, (msg, r) in enumerate(zip(smoothed, expected)):
+            assert msg.header.stamp == ns_to_stamp((k + 1) * 10**7)
+            assert msg.header.frame_id == 'world'
+            assert np.allclose(pose_to_matrix(msg.pose), r.T_moving, atol=1e-9)
     finally:
         node.destroy_node()
 

@@ -356,16 +356,22 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
 
     Every object's published poses against truth (lost / flagged / wrong frames counted),
     and the peg's ADD-sym before and after contact correction, in the camera frame and relative
-    to the localised hole block, per contact phase.
+    to the localised hole block, per contact phase: ``corrected`` is the node's online output
+    (``corrected_pose``), ``smoothed`` its fixed-lag one (``corrected_pose_smoothed``,
+    ``smoothing_lag`` frames late).
     """
     from stereo_manip_tools.transforms import invert_transform
     out: Dict[str, Any] = {'poses': {n: score_object_poses(data, n, window)
                                      for n in stage.objects}}
     out['poses']['peg (corrected)'] = score_object_poses(
         data, 'peg', window, pose_topic='/objects/peg/pose_corrected')
+    if '/objects/peg/pose_corrected_smoothed' in data:
+        out['poses']['peg (smoothed)'] = score_object_poses(
+            data, 'peg', window, pose_topic='/objects/peg/pose_corrected_smoothed')
     truth = _by_stamp(data['/objects/peg/pose_truth'])
     observed = _by_stamp(data['/objects/peg/pose'])
     corrected = _by_stamp(data['/objects/peg/pose_corrected'])
+    smoothed = _by_stamp(data.get('/objects/peg/pose_corrected_smoothed', []))
     block_truth = _by_stamp(data['/objects/hole_block/pose_truth'])
     block = _by_stamp(data['/objects/hole_block/pose'])
     states = _by_stamp(data['/contact_state'])
@@ -391,6 +397,10 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
                 poses['peg_corrected'] = _pose(corrected[stamp]).tolist()
                 row['relative_add_sym_corrected_m'] = error(to_block @ _pose(corrected[stamp]),
                                                             rel_true)
+            if stamp in smoothed:
+                poses['peg_smoothed'] = _pose(smoothed[stamp]).tolist()
+                row['relative_add_sym_smoothed_m'] = error(to_block @ _pose(smoothed[stamp]),
+                                                           rel_true)
         st = states.get(stamp)
         if st is not None:
             row.update(corrected=bool(st.corrected), rotation_rank=int(st.rotation_rank),
@@ -413,7 +423,13 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
                  if 'relative_add_sym_corrected_m' in r], 1000.0),
             'relative_add_sym_corrected_mm': spread(
                 [r['relative_add_sym_corrected_m'] for r in sel
-                 if 'relative_add_sym_corrected_m' in r], 1000.0)}
+                 if 'relative_add_sym_corrected_m' in r], 1000.0),
+            'frames_smoothed': sum('relative_add_sym_smoothed_m' in r for r in sel),
+            # the frames of the two columns above that have a smoothed pose too
+            'relative_add_sym_smoothed_mm': spread(
+                [r['relative_add_sym_smoothed_m'] for r in sel
+                 if 'relative_add_sym_smoothed_m' in r and 'relative_add_sym_corrected_m' in r],
+                1000.0)}
     out['phases'] = phases
     corr = [r for r in rows if r.get('corrected')]
     out['frames_corrected'] = len(corr)
@@ -529,9 +545,11 @@ def _peg_in_hole_stage(name: str = 'peg_in_hole', live_seconds: float = 0.0) -> 
          NodeSpec('contact_correction', 'contact_correction_node', 'contact_correction',
                   {'moving_object': 'peg', 'fixed_object': 'hole_block', **PEG_POSE_NOISE},
                   {'moving_pose': '/objects/peg/pose', 'fixed_pose': '/objects/hole_block/pose',
-                   'corrected_pose': '/objects/peg/pose_corrected'})],
+                   'corrected_pose': '/objects/peg/pose_corrected',
+                   'corrected_pose_smoothed': '/objects/peg/pose_corrected_smoothed'})],
         {**_object_topics(objects),
          '/objects/peg/pose_corrected': 'geometry_msgs/msg/PoseStamped',
+         '/objects/peg/pose_corrected_smoothed': 'geometry_msgs/msg/PoseStamped',
          '/contact_state': 'stereo_manip_msgs/msg/ContactState'},
         score_peg_in_hole,
         'contact correction of a localised peg (Section 3)' + (
@@ -802,7 +820,9 @@ def _figure(stage: str, result: Dict[str, Any], path: Path) -> Optional[Path]:
         rows = result['frames']
         t = np.array([(r['stamp_ns'] - t0) / 1e9 for r in rows])
         for key, label, mk in (('relative_add_sym_observed_m', 'localised', 'o'),
-                               ('relative_add_sym_corrected_m', 'after contact correction', 's')):
+                               ('relative_add_sym_corrected_m', 'after contact correction', 's'),
+                               ('relative_add_sym_smoothed_m', 'after correction, fixed-lag',
+                                '^')):
             e = np.array([r[key] * 1000 if key in r else np.nan for r in rows])
             ax2.plot(t, e, mk + '-', ms=3, lw=0.8, label=label)
         missing = np.array(['relative_add_sym_corrected_m' not in r for r in rows])
@@ -872,7 +892,8 @@ def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
                 f"{phase} ({ph['frames']} frames, {ph['frames_scored']} scored, "
                 f"{ph['contact_corrected']} corrected): peg ADD-sym relative to the localised "
                 f"block: localised {_fmt(ph['relative_add_sym_observed_mm'])}; after correction "
-                f"{_fmt(ph['relative_add_sym_corrected_mm'])}")
+                f"{_fmt(ph['relative_add_sym_corrected_mm'])}; fixed-lag "
+                f"{_fmt(ph['relative_add_sym_smoothed_mm'])}")
         lines.append(f"max penetration observed {result['max_penetration_observed_mm']:.2f} "
                      f'mm; max contact residual after correction '
                      f"{result['max_contact_residual_after_mm']:.4f} mm; rotation ranks seen "
