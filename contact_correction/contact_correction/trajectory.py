@@ -25,7 +25,7 @@ from __future__ import annotations
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from stereo_manip_tools.transforms import rotation_log
+from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
 
 from .contact_relation import (
     ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts, FACE,
@@ -39,7 +39,7 @@ from .recognition import (
     RelationTracker)
 
 __all__ = ['correct_trajectory', 'trajectory_components', 'ContactCorrector',
-           'correct_recognised', 'guard_limits']
+           'correct_recognised', 'guard_limits', 'push_out_inequalities']
 
 #: alternative relations tried when the chosen one is refused
 MAX_FALLBACKS = 3
@@ -193,6 +193,71 @@ def _solve_keeping_free(moving: Polyhedron, fixed: Polyhedron, T_start: np.ndarr
             or np.abs(F @ (T[:3, 3] - T_obs[:3, 3])).max(initial=0.0) > FREE_TOLERANCE:
         return None
     return T
+
+
+def push_out_inequalities(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
+                          T_fixed: np.ndarray, pairs: Sequence[ContactPair],
+                          scales: Tuple[float, float] = (1e-3, np.deg2rad(1.0)),
+                          spacing: float = 0.005, tolerance: float = 1e-6,
+                          rounds: int = 4) -> Optional[CorrectionResult]:
+    """
+    Nearest pose without penetration, non-penetration as inequalities (the last resort).
+
+    The push-outs of :func:`_correct_recognised_paths` bring their pairs *to* contact (the
+    non-linear step's equations); with many pairs penetrating (a peg pressed into a corner)
+    those equations may have no solution near the observation, or put contact points off
+    their elements, and penetration was passed through. Here the pose change ``x`` (rotation
+    about the moving origin in units of ``scales[1]``, translation in units of
+    ``scales[0]``, fixed frame) of least ``|x|`` with every pair's distance >= 0 is found
+    (SLSQP); pairs found penetrating at the result are added and the search repeated.
+
+    :param pairs: the pairs whose penetration is real at the observation (the guard's).
+    :param scales: the stated pose noise (translation [m], rotation [rad]): the metric.
+    :returns: the result (``method`` 'nonlinear', the pairs in contact at it as its relation)
+        when it leaves no penetration deeper than ``tolerance``, else None.
+    """
+    from scipy.optimize import minimize
+    T_o = relative_pose(T_moving, T_fixed)
+    sel = list(pairs)
+    x = np.zeros(6)
+
+    def pose(x: np.ndarray) -> np.ndarray:
+        T = T_o.copy()
+        w = x[:3] * scales[1]
+        if np.linalg.norm(w) > 0:
+            T[:3, :3] = rotation_about_axis(w, float(np.linalg.norm(w))) @ T[:3, :3]
+        T[:3, 3] += x[3:] * scales[0]
+        return T
+
+    for _ in range(rounds):
+        if not sel:
+            return None
+        res = minimize(lambda x: float(x @ x), x, jac=lambda x: 2.0 * x, method='SLSQP',
+                       constraints=[{'type': 'ineq', 'fun': lambda x, sel=sel: evaluate_contacts(
+                           moving, fixed, pose(x), sel).distances}],
+                       options={'ftol': 1e-12, 'maxiter': 200})
+        if not np.all(np.isfinite(res.x)):
+            return None
+        x = res.x
+        T = pose(x)
+        pen = penetration_depth(moving, fixed, T_fixed @ T, T_fixed, spacing)
+        if pen <= tolerance:
+            g = evaluate_contacts(moving, fixed, T, sel)
+            on = [p for p, d in zip(sel, g.distances) if abs(d) <= max(tolerance, 1e-7)]
+            r = CorrectionResult(T_moving=T_fixed @ T, corrected=True, method='nonlinear',
+                                 pairs=on, penetration_after=pen,
+                                 rotation_change=rotation_log(T[:3, :3] @ T_o[:3, :3].T),
+                                 status='non-linear push-out, non-penetration as inequalities '
+                                        f'({len(sel)} pairs, {len(on)} in contact at the result)')
+            return _adopt_relative_pose(r, moving, fixed, T_fixed, T_o, T, '')
+        found = detect_contact_relation(moving, fixed, T_fixed @ T, T_fixed, tolerance=0.0,
+                                        penetration_tolerance=max(pen, 1e-3))
+        d = evaluate_contacts(moving, fixed, T, found).distances if found else np.zeros(0)
+        new = [p for p, dist in zip(found, d) if dist < -tolerance and p not in sel]
+        if not new:
+            return None
+        sel += new
+    return None
 
 
 def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
@@ -520,6 +585,25 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
             if not over(r):
                 return r
             oversize.append(r)
+    if check and pen > tol and not oversize and guard is not None \
+            and len(guard) == len(frame.pool):
+        # the last resort, when no correction at all was found: non-penetration as
+        # inequalities from the pairs that really penetrate (the T-peg pressed into the
+        # slot's corner at lag 1 of contact_tracks: every relation and push-out above failed,
+        # 2.1 mm of penetration was passed through)
+        at_obs = evaluate_contacts(moving, fixed, relative_pose(T_moving, T_fixed),
+                                   list(frame.pool)).distances if frame.pool else np.zeros(0)
+        real = [p for p, d, g in zip(frame.pool, at_obs, guard) if g and d < -tol]
+        scales = guard_limits if guard_limits is not None else (1e-3, np.deg2rad(1.0))
+        r = push_out_inequalities(moving, fixed, T_moving, T_fixed, real, scales, spacing, tol)
+        if r is not None:
+            r.penetration_before = pen
+            r.relation_source = 'recognised, push-out'
+            guarded(r, 'no recognised relation could be enforced; only the penetration '
+                       f'removed ({size(r)})')
+            if not over(r):
+                return r
+            oversize.append(r)          # flagged as over the limits below
     if oversize:
         # every non-penetrating correction found is beyond the guard: the smallest (stated
         # noise units), flagged, rather than penetration passed through

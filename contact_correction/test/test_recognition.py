@@ -751,3 +751,22 @@ def test_fixed_lag_gap_decides_the_waiting_frames(models):
     assert lagged.push(To[3], Tf, tag=3) == [] and lagged.flush()[0][0] == 3
     with pytest.raises(ValueError, match='lag'):
         ContactCorrector(tr.moving, tr.fixed, opts, lag=-1)
+
+
+def test_no_penetration_passed_through_when_every_relation_fails(models):
+    """
+    The T-peg entering its slot, benchmark run 1.5 mm / 2 deg, seed 1, frame 3, at lag 1.
+
+    The observation penetrates 2.1 mm; the relation chosen, its fallbacks and the push-outs
+    (pairs brought to contact) all fail: off their elements or no solution near the
+    observation. The last resort, non-penetration as inequalities, finds a pose without
+    penetration; it is flagged (``guarded``), not passed through.
+    """
+    tr, Tf, To, opts = _benchmark_observations(models, 't_peg_pull_up', 1, 1)
+    lagged = ContactCorrector(tr.moving, tr.fixed, opts, lag=1)
+    out = dict(x for j, T in enumerate(To[:5]) for x in lagged.push(T, Tf, j))
+    assert penetration_depth(tr.moving, tr.fixed, To[3], Tf, 0.002) > 2e-3
+    r = out[3]
+    assert r.corrected and r.guarded and 'inequalities' in r.status, r.status
+    assert penetration_depth(tr.moving, tr.fixed, r.T_moving, Tf, 0.002) < 1e-5
+    assert np.linalg.norm(r.translation_change) < 4 * opts.sigma_translation
