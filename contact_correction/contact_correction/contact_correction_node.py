@@ -115,6 +115,9 @@ class ContactCorrectionNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('contact_correction', **kwargs)
+        # reset by the parameter callback, which runs from the first declaration on
+        self.corrector: ContactCorrector | None = None
+        self.smoother: ContactCorrector | None = None     # the fixed-lag one
         self.add_on_set_parameters_callback(self._on_set_parameters)
         reject_nonfinite_parameters(self)
         self.rejections = InputRejections(self.get_logger())
@@ -227,8 +230,6 @@ class ContactCorrectionNode(Node):
                                        'corrected': 0, 'passed_through': 0, 'guarded': 0,
                                        'smoothed': 0}
         self.track: deque = deque(maxlen=int(g('track_length').value))
-        self.corrector: ContactCorrector | None = None
-        self.smoother: ContactCorrector | None = None     # the fixed-lag one
         self._last_moving = time.monotonic()
         self._units_warned = False
         self._last_stamp: int | None = None
@@ -335,15 +336,14 @@ class ContactCorrectionNode(Node):
     def _correct(self, T_moving: np.ndarray, T_fixed: np.ndarray) -> CorrectionResult:
         if self.moving is None or self.fixed is None or self.model_error:
             return CorrectionResult(T_moving=T_moving, status=self.model_error)
-        relation = self._relation()
-        recognition = self._recognition()
-        if relation is not None or recognition is None:
+        if not self._temporal():
+            relation = self._relation()
             r = correct_pose(self.moving, self.fixed, T_moving, T_fixed, relation,
                              **self._options())
             r.relation_source = 'given' if relation is not None else 'detected'
             return r
         if self.corrector is None:
-            self.corrector = ContactCorrector(self.moving, self.fixed, recognition,
+            self.corrector = ContactCorrector(self.moving, self.fixed, self._recognition(),
                                               **self._options())
         return self.corrector.update(T_moving, T_fixed)
 
@@ -370,7 +370,7 @@ class ContactCorrectionNode(Node):
 
     def _flush_smoothed(self) -> None:
         """Decide and publish the frames waiting in the fixed-lag corrector."""
-        if getattr(self, 'smoother', None) is not None:
+        if self.smoother is not None:
             self._publish_smoothed(self.smoother.flush())
 
     def _on_smoothing_timer(self) -> None:

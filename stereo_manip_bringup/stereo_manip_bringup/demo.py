@@ -384,8 +384,8 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
         rel_true = invert_transform(_pose(block_truth[stamp])) @ _pose(truth[stamp])
         row: Dict[str, Any] = {'stamp_ns': stamp, 'phase': _phase_of(rel_true, table)}
         # the frame's poses (4x4 lists): the truth of the peg in the block's frame, and the
-        # localised peg and block and the corrected peg in the camera's optical frame, so a
-        # frame can be replayed through the contact correction offline
+        # localised peg and block and the corrected (online and fixed-lag) peg in the camera's
+        # optical frame, so a frame can be replayed through the contact correction offline
         poses = row['poses'] = {'peg_in_block_truth': rel_true.tolist()}
         if stamp in observed and stamp in block:
             to_block = invert_transform(_pose(block[stamp]))
@@ -393,14 +393,11 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
                          hole_block=_pose(block[stamp]).tolist())
             row['relative_add_sym_observed_m'] = error(to_block @ _pose(observed[stamp]),
                                                        rel_true)
-            if stamp in corrected:
-                poses['peg_corrected'] = _pose(corrected[stamp]).tolist()
-                row['relative_add_sym_corrected_m'] = error(to_block @ _pose(corrected[stamp]),
-                                                            rel_true)
-            if stamp in smoothed:
-                poses['peg_smoothed'] = _pose(smoothed[stamp]).tolist()
-                row['relative_add_sym_smoothed_m'] = error(to_block @ _pose(smoothed[stamp]),
-                                                           rel_true)
+            for key, published in (('corrected', corrected), ('smoothed', smoothed)):
+                if stamp in published:
+                    poses[f'peg_{key}'] = _pose(published[stamp]).tolist()
+                    row[f'relative_add_sym_{key}_m'] = error(
+                        to_block @ _pose(published[stamp]), rel_true)
         st = states.get(stamp)
         if st is not None:
             row.update(corrected=bool(st.corrected), rotation_rank=int(st.rotation_rank),
