@@ -74,7 +74,10 @@ _RECOGNITION_PARAMETERS = ('recognition', 'sigma_translation', 'sigma_rotation',
                            'noise_correlation', 'optimal',
                            'tolerance', 'penetration_tolerance', 'angle_tolerance',
                            'max_translation', 'max_rotation', 'check_penetration',
-                           'element_margin')
+                           'element_margin', 'reference_point')
+
+#: values of the ``reference_point`` parameter
+REFERENCE_POINTS = ('origin', 'centroid')
 
 
 def model_path_problem(value: str) -> str:
@@ -191,6 +194,13 @@ class ContactCorrectionNode(Node):
         self.declare_parameter('element_margin', 1e-6, _float(
             'largest distance [m] of a corrected contact point outside its element (given / '
             'detected relations; recognised ones use the search margin)', 0.0, 0.05))
+        self.declare_parameter('reference_point', 'origin', _string(
+            'the point of the moving object the optimal correction keeps where it was observed '
+            "along the directions the relation leaves free: 'origin' (the chapter: the model's "
+            "origin) or 'centroid' (its surface centroid: independent of where the model's "
+            'origin is; better when the pose errors tilt about the middle of the part, as a '
+            'surface-fitting localiser makes them)', additional_constraints=' or '.join(
+                REFERENCE_POINTS)))
         self.declare_parameter('smoothing_lag', 3, _int(
             'corrected_pose_smoothed: frames a corrected pose waits for the evidence of the '
             'frames after it (fixed-lag smoothing of the contact relation); 0: not published',
@@ -278,6 +288,10 @@ class ContactCorrectionNode(Node):
             if p.name in ('moving_object', 'fixed_object') and not str(p.value).strip():
                 return SetParametersResult(successful=False,
                                            reason=f'{p.name} must name a model')
+            if p.name == 'reference_point' and p.value not in REFERENCE_POINTS:
+                return SetParametersResult(
+                    successful=False, reason=f'reference_point must be one of '
+                    f'{", ".join(REFERENCE_POINTS)}, got {p.value!r}')
             if p.name == 'relation' and str(p.value).strip():
                 try:
                     parse_relation(str(p.value))
@@ -302,7 +316,10 @@ class ContactCorrectionNode(Node):
                 'max_translation': g('max_translation').value,
                 'max_rotation': g('max_rotation').value,
                 'check_penetration': g('check_penetration').value,
-                'element_margin': g('element_margin').value}
+                'element_margin': g('element_margin').value,
+                'reference_point': self.moving.centroid
+                if g('reference_point').value == 'centroid' and self.moving is not None
+                else None}
 
     def _recognition(self) -> RecognitionOptions | None:
         g = self.get_parameter

@@ -326,6 +326,12 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
                    help='largest accepted orientation correction [deg]')
     c.add_argument('--residual-tolerance', type=float, default=RESIDUAL_TOLERANCE,
                    help='contact residual accepted after correction [m]')
+    c.add_argument('--reference-point', choices=('origin', 'centroid'), default='origin',
+                   help='the point of the moving object the optimal correction keeps where it '
+                        'was observed along the directions the relation leaves free: the '
+                        "model's origin (the chapter) or its surface centroid (independent of "
+                        "where the model's origin is; better for poses from a "
+                        "surface-fitting localiser, whose errors tilt about the part's middle)")
     ap.add_argument('--nonlinear-only', action='store_true',
                     help='skip the optimal linear correction')
     ap.add_argument('--figure', type=Path, default=None, help='write a Fig. 9-like PNG')
@@ -389,7 +395,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     opts = {'tolerance': args.tolerance, 'penetration_tolerance': args.penetration_tolerance,
             'element_margin': args.element_margin, 'max_translation': args.max_translation,
             'max_rotation': float(np.deg2rad(args.max_rotation_deg)),
-            'residual_tolerance': args.residual_tolerance}
+            'residual_tolerance': args.residual_tolerance,
+            'reference_point': moving.centroid if args.reference_point == 'centroid' else None}
     recognition = None if (args.per_frame_detection or relation is not None) else \
         RecognitionOptions(sigma_translation=args.sigma_translation,
                            sigma_rotation=float(np.deg2rad(args.sigma_rotation_deg)),

@@ -18,7 +18,10 @@ do not constrain:
 4. Translation: with the orientation fixed the contact distances are affine in the translation;
    the minimum-norm least-squares change of the observed translation that zeroes them lies in
    the span of the separating-plane normals, so the displacement along the unconstrained
-   translation directions is exactly zero (Fig. 9) (:func:`optimal_translation`).
+   translation directions is exactly zero (Fig. 9) (:func:`optimal_translation`). Zero for
+   which point of the moving object: the chapter's is the model origin; any reference point
+   may be held instead (:func:`reference_translation`; ``correct_pose``'s
+   ``reference_point``).
 
 Reading of Eqs. 4-7. As printed, Eq. 5 gives ``Theta_opt = R(m, alpha) Theta_S`` and Eq. 7
 ``Theta_opt = R_z(alpha) Theta_S``; a rotation of the corrected orientation about a constrained
@@ -58,6 +61,7 @@ __all__ = [
     'rotational_constraint',
     'rotational_constraint_rank',
     'constraint_directions',
+    'reference_translation',
     'scaled_singular_values',
     'optimal_orientation_rank2',
     'optimal_orientation_edge_on_face',
@@ -388,6 +392,33 @@ def classify_rank1(moving: Polyhedron, fixed: Polyhedron, T_rel_S: np.ndarray,
     return 'other', None, None
 
 
+def reference_translation(T_rel_E: np.ndarray, R: np.ndarray,
+                          reference_point: Optional[np.ndarray] = None) -> np.ndarray:
+    """
+    Return the translation that keeps a point of the moving object where it was observed.
+
+    The translation rule of step 4 changes the observed translation by the least amount; which
+    translation is "observed" once the orientation has changed from ``Theta_E`` to ``R`` depends
+    on the point of the moving object held fixed: the model's origin (the chapter's reading,
+    ``t_E``) or any ``reference_point`` ``c``: ``t_E + (Theta_E - R) c``. The origin of a
+    model is arbitrary (a CAD convention); with ``c`` the surface centroid the rule moves the
+    model's points least on average (the mean squared displacement of the points under a
+    rotation change plus a translation is least when the centroid's displacement is), and a
+    correction that removes a tilt about the centroid leaves the centroid in place. Measured
+    on the demo's peg (origin at its bottom face, 120 mm tall), whose localised poses tilt
+    about a point 60-90 mm up: see ``correct_pose``'s ``reference_point``.
+
+    :param T_rel_E: observed pose of the moving object in the fixed frame (4x4).
+    :param R: the corrected orientation (3x3).
+    :param reference_point: (3,) [m, moving frame]; None: the origin (``t_E`` returned).
+    """
+    t_E = np.asarray(T_rel_E, dtype=float)[:3, 3]
+    if reference_point is None:
+        return t_E.copy()
+    c = np.asarray(reference_point, dtype=float).reshape(3)
+    return t_E + (np.asarray(T_rel_E, dtype=float)[:3, :3] - np.asarray(R, dtype=float)) @ c
+
+
 def optimal_translation(moving: Polyhedron, fixed: Polyhedron, R_opt: np.ndarray,
                         t_observed: np.ndarray, pairs: Sequence[ContactPair],
                         tol: float = RANK_TOLERANCE, free_directions: bool = True
@@ -455,7 +486,8 @@ def _orientation_rule(moving: Polyhedron, fixed: Polyhedron, T_rel_E: np.ndarray
 def correct_optimal(moving: Polyhedron, fixed: Polyhedron, T_rel_E: np.ndarray,
                     T_rel_S: np.ndarray, pairs: Sequence[ContactPair],
                     rank1_method: str = 'auto', refine: int = 5,
-                    residual_tolerance: float = 1e-9) -> OptimalResult:
+                    residual_tolerance: float = 1e-9,
+                    reference_point: Optional[np.ndarray] = None) -> OptimalResult:
     """
     Optimal correction from the observed pose ``T_rel_E`` and a feasible pose ``T_rel_S``.
 
@@ -473,6 +505,9 @@ def correct_optimal(moving: Polyhedron, fixed: Polyhedron, T_rel_E: np.ndarray,
     :param refine: extra fixed-point rounds (0 = the chapter's single application).
     :param residual_tolerance: a refinement round is kept only if its contact residual is
         below this [m].
+    :param reference_point: (3,) the point of the moving object [m, moving frame] whose
+        observed position the translation rule keeps along every free direction
+        (:func:`reference_translation`); None: the moving origin, as the chapter.
     """
     R_E = T_rel_E[:3, :3]
     S = np.array(T_rel_S, dtype=float)
@@ -481,8 +516,9 @@ def correct_optimal(moving: Polyhedron, fixed: Polyhedron, T_rel_E: np.ndarray,
     for k in range(refine + 1):
         R_opt, method, dirs, case = _orientation_rule(moving, fixed, T_rel_E, S, pairs,
                                                       rank1_method, case)
-        t_opt, res, _ = optimal_translation(moving, fixed, R_opt, T_rel_E[:3, 3], pairs,
-                                            free_directions=False)
+        t_opt, res, _ = optimal_translation(
+            moving, fixed, R_opt, reference_translation(T_rel_E, R_opt, reference_point),
+            pairs, free_directions=False)
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R_opt, t_opt
         if best is not None and res > max(residual_tolerance, best[3]):

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from stereo_manip_tools.mesh_io import find_model, load_obj, PolygonMesh
+from stereo_manip_tools.mesh_io import find_model, load_obj, PolygonMesh, surface_centroid
 from stereo_manip_tools.transforms import perpendicular_basis
 
 __all__ = [
@@ -334,6 +334,9 @@ class Polyhedron:
         traverses the edge from ``edge_vertices[e, 0]`` to ``edge_vertices[e, 1]``.
     :ivar edge_convex: True for convex edges, shape (E,).
     :ivar vertex_edges: for each vertex, the indices of the edges incident to it.
+
+    Derived on construction, among others: ``size`` (bounding-box diagonal [m]) and
+    ``centroid`` (area-weighted surface centroid [m], model frame).
     """
 
     name: str
@@ -379,6 +382,8 @@ class Polyhedron:
             v: np.unique(self.edge_faces[es]) for v, es in enumerate(self.vertex_edges)
             if len(es) > 0}
         self.size = float(np.linalg.norm(self.vertices.max(0) - self.vertices.min(0)))
+        #: area-weighted centroid of the surface [m], model frame
+        self.centroid = surface_centroid(self.vertices, self.triangles)
         self.bbox_min = self.vertices.min(0)
         self.bbox_max = self.vertices.max(0)
         self._samples: Dict[float, np.ndarray] = {}

@@ -39,7 +39,7 @@ from .recognition import (
     RelationTracker)
 
 __all__ = ['correct_trajectory', 'trajectory_components', 'ContactCorrector',
-           'correct_recognised', 'guard_limits', 'push_out_inequalities']
+           'correct_recognised', 'guard_limits', 'held_point', 'push_out_inequalities']
 
 #: alternative relations tried when the chosen one is refused
 MAX_FALLBACKS = 3
@@ -83,18 +83,20 @@ def _honour_free_directions(moving: Polyhedron, fixed: Polyhedron, T_moving: np.
 
     The free translations of ``r.pairs`` as the recognition sees them
     (:func:`_recognised_free_translation`, at the observed pose, fixed frame). A change of the
-    moving origin along them above :data:`FREE_TOLERANCE` is removed when the pose keeps the
-    relation's contacts (within the residual tolerance) and stays out of penetration there;
-    else a non-penetrating observation is passed through (``guarded``, status says why);
-    else (the observation penetrates, the correction is the only one removing it) the
-    correction is kept and flagged ``guarded`` with the size of the change in its status.
+    moving origin (or of ``r.reference_point``, :func:`held_point`) along them above
+    :data:`FREE_TOLERANCE` is removed when the pose keeps the relation's contacts (within
+    the residual tolerance) and stays out of penetration there; else a non-penetrating
+    observation is passed through (``guarded``, status says why); else (the observation
+    penetrates, the correction is the only one removing it) the correction is kept and
+    flagged ``guarded`` with the size of the change in its status.
     """
     if not r.corrected or not r.pairs:
         return r
     T_o, T_c = relative_pose(T_moving, T_fixed), relative_pose(r.T_moving, T_fixed)
     F = _recognised_free_translation(moving, fixed, T_o, Hypothesis(
         frozenset(frame.groups), tuple(r.pairs), 0.0, 0, 0.0), frame)
-    leak = F @ (T_c[:3, 3] - T_o[:3, 3])
+    c = r.reference_point
+    leak = F @ (held_point(T_c, c) - held_point(T_o, c))
     if not len(F) or np.abs(leak).max() <= FREE_TOLERANCE:
         return r
     size = np.abs(leak).max() * 1e3
@@ -113,7 +115,7 @@ def _honour_free_directions(moving: Polyhedron, fixed: Polyhedron, T_moving: np.
     # edge-edge pair at a slot's entrance) so that they acquire a component along the free
     # direction; solve the relation again with the free components held at the observed ones
     try:
-        T_s = _solve_keeping_free(moving, fixed, T_b, T_o, list(r.pairs), F, tol)
+        T_s = _solve_keeping_free(moving, fixed, T_b, T_o, list(r.pairs), F, tol, c)
     except (ValueError, np.linalg.LinAlgError):     # e.g. parallel edges of an edge pair
         T_s = None
     if T_s is not None and (not check or penetration_depth(
@@ -157,27 +159,42 @@ def _adopt_relative_pose(r: CorrectionResult, moving: Polyhedron, fixed: Polyhed
     return r
 
 
+def held_point(T_rel: np.ndarray, reference_point: Optional[np.ndarray] = None) -> np.ndarray:
+    """
+    Return where the correction's reference point is at the relative pose ``T_rel`` (4x4).
+
+    :param reference_point: (3,) [m, moving frame] (``correct_pose``'s); None: the origin.
+    :return: (3,) [m, fixed frame].
+    """
+    if reference_point is None:
+        return np.asarray(T_rel, dtype=float)[:3, 3].copy()
+    return T_rel[:3, :3] @ np.asarray(reference_point, dtype=float).reshape(3) + T_rel[:3, 3]
+
+
 def _solve_keeping_free(moving: Polyhedron, fixed: Polyhedron, T_start: np.ndarray,
                         T_obs: np.ndarray, pairs: List[ContactPair], F: np.ndarray,
-                        tol: float, iterations: int = 20) -> Optional[np.ndarray]:
+                        tol: float, reference_point: Optional[np.ndarray] = None,
+                        iterations: int = 20) -> Optional[np.ndarray]:
     """
-    Satisfy ``pairs`` with the moving origin's components along ``F`` held at the observed.
+    Satisfy ``pairs`` with the reference point's components along ``F`` held at the observed.
 
     Gauss-Newton from ``T_start`` (moving in fixed frame, 4x4) on the screw ``[w, v]``
     (:func:`~contact_correction.nonlinear_correction.apply_screw`, rotation scaled by the
     moving object's size): the contact distances' rows of Eq. 2 and, as exact rows, the
-    change of the origin along the free translations ``F`` (k, 3; fixed frame) that brings
-    it back to ``T_obs``'s (``f . (w x t + v) = f . (t_obs - t)``); minimum-norm steps.
+    change of the reference point ``p`` (:func:`held_point`; the origin by default) along
+    the free translations ``F`` (k, 3; fixed frame) that brings it back to ``T_obs``'s
+    (``f . (w x p + v) = f . (p_obs - p)``); minimum-norm steps.
 
     :returns: the pose (4x4) or None when the residual stays above ``tol`` [m].
     """
     L = max(moving.size / 4.0, 1e-6)
     scale = np.array([1.0 / L] * 3 + [1.0] * 3)
     T = np.array(T_start, dtype=float)
+    p_obs = held_point(T_obs, reference_point)
     for _ in range(iterations):
         g = evaluate_contacts(moving, fixed, T, pairs)
-        t = T[:3, 3]
-        leak = F @ (t - T_obs[:3, 3])
+        t = held_point(T, reference_point)
+        leak = F @ (t - p_obs)
         if np.abs(g.distances).max(initial=0.0) <= 1e-3 * tol \
                 and np.abs(leak).max(initial=0.0) <= 1e-3 * FREE_TOLERANCE:
             break
@@ -189,8 +206,8 @@ def _solve_keeping_free(moving: Polyhedron, fixed: Polyhedron, T_start: np.ndarr
             return None
         T = apply_screw(T, step[:3], step[3:])
     g = evaluate_contacts(moving, fixed, T, pairs)
-    if np.abs(g.distances).max(initial=0.0) > tol \
-            or np.abs(F @ (T[:3, 3] - T_obs[:3, 3])).max(initial=0.0) > FREE_TOLERANCE:
+    if np.abs(g.distances).max(initial=0.0) > tol or np.abs(
+            F @ (held_point(T, reference_point) - p_obs)).max(initial=0.0) > FREE_TOLERANCE:
         return None
     return T
 
@@ -423,7 +440,8 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
             return r
         T_o, T_c = relative_pose(T_moving, T_fixed), relative_pose(r.T_moving, T_fixed)
         F = _recognised_free_translation(moving, fixed, T_o, h, frame)
-        leak = F @ (T_c[:3, 3] - T_o[:3, 3])
+        c = r.reference_point
+        leak = F @ (held_point(T_c, c) - held_point(T_o, c))
         if len(F) and np.abs(leak).max() > FREE_TOLERANCE:
             T_b = T_c.copy()
             T_b[:3, 3] -= F.T @ leak

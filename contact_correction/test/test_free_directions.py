@@ -150,3 +150,87 @@ def test_peg_sliding_onto_the_hole_is_not_pushed_along_the_top_face(peg_hole):
             if d > 1e-6:
                 moved.append(f'seed {seed} frame {k}: {d * 1e3:.3f} mm ({r.status})')
     assert not moved, moved
+
+
+def _tilted_about(T: np.ndarray, axis, angle: float, point_model: np.ndarray) -> np.ndarray:
+    """``T`` (4x4, moving in fixed frame) turned by ``angle`` about ``axis`` through a point."""
+    out = T.copy()
+    R = rotation_about_axis(np.asarray(axis, dtype=float), angle)
+    p = T[:3, :3] @ point_model + T[:3, 3]
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = R @ (T[:3, 3] - p) + p
+    return out
+
+
+@pytest.mark.parametrize('height', [0.06, 0.09])
+def test_reference_point_keeps_the_centroid_of_a_peg_tilted_about_its_middle(peg_hole, height):
+    """
+    The peg standing on the block's top face, observed tilted 0.5 deg about a point ``height`` up.
+
+    The relation (bottom face on top face) constrains the tilt and the height; the chapter's
+    translation rule keeps the origin's x, y (the bottom face's centre, displaced by the tilt
+    about the middle), so the corrected peg is off by the tilt's lever arm everywhere; with
+    ``reference_point`` the peg's centroid, its x, y are kept instead. A tilt about the
+    centroid (0.06 m) is then undone exactly; about 0.09 m, the centroid moved by 0.26 mm
+    and stays so (the lever arm from the tilt's pivot, 0.03 m, not 0.09 m).
+    """
+    peg, block = peg_hole
+    from contact_correction.correction import correct_pose
+    from contact_correction.contact_relation import detect_contact_relation
+    truth = make_transform(np.eye(3), [0.05, 0.004, 0.0])
+    pairs = detect_contact_relation(peg, block, truth, I4, tolerance=1e-7)
+    tilt = np.deg2rad(0.5)
+    obs = _tilted_about(truth, [1.0, 0.0, 0.0], tilt, np.array([0.0, 0.0, height]))
+    np.testing.assert_allclose(peg.centroid, [0.0, 0.0, 0.06], atol=1e-12)
+    origin = correct_pose(peg, block, obs, I4, pairs)
+    centroid = correct_pose(peg, block, obs, I4, pairs, reference_point=peg.centroid)
+    for r in (origin, centroid):
+        assert r.corrected and r.method.startswith('optimal'), r.status
+        np.testing.assert_allclose(r.T_moving[:3, :3], np.eye(3), atol=1e-9)   # tilt removed
+        assert abs(r.T_moving[2, 3]) < 1e-9                                  # on the face
+    # the origin keeps its observed y: off by the whole lever arm
+    assert abs(origin.T_moving[1, 3] - obs[1, 3]) < 1e-9
+    lever = abs(origin.T_moving[1, 3] - truth[1, 3])
+    assert lever == pytest.approx(height * np.sin(tilt), rel=1e-3)
+    assert origin.reference_point is None
+    # the centroid keeps its observed x, y; y error = the lever arm from the pivot to it
+    c_obs = obs[:3, :3] @ peg.centroid + obs[:3, 3]
+    c_cor = centroid.T_moving[:3, :3] @ peg.centroid + centroid.T_moving[:3, 3]
+    np.testing.assert_allclose(c_cor[:2], c_obs[:2], atol=1e-9)
+    assert abs(centroid.T_moving[1, 3] - truth[1, 3]) == pytest.approx(
+        abs(height - 0.06) * np.sin(tilt), abs=1e-9)
+    np.testing.assert_allclose(centroid.reference_point, peg.centroid)
+
+
+def test_reference_point_through_recognition_and_free_direction_checks(peg_hole):
+    """
+    The recognised path holds the reference point too; its free-direction checks measure it.
+
+    Sliding on the top face, observed tilted 0.8 deg about the centroid and shifted by noise:
+    with ``reference_point`` the centroid, every corrected pose is the truth shifted by the
+    noise's x, y (the free translations, kept as observed at the centroid) to 1 um, and no
+    correction is "restored" to the origin's x, y (which would undo the rule); holding the
+    origin leaves the tilt's lever arm on top: 0.8 deg x 60 mm = 0.84 mm.
+    """
+    peg, block = peg_hole
+    rng = np.random.default_rng(3)
+    truth = [make_transform(np.eye(3), [x, 0.004, 0.0]) for x in np.linspace(0.05, 0.04, 6)]
+    obs, shifted = [], []
+    for T in truth:
+        noise = rng.normal(size=3) * 2e-4
+        o = _tilted_about(T, rng.normal(size=3) * [1, 1, 0], np.deg2rad(0.8), peg.centroid)
+        o[:3, 3] += noise
+        obs.append(o)
+        shifted.append(make_transform(np.eye(3), T[:3, 3] + [noise[0], noise[1], 0.0]))
+    opts = RecognitionOptions(sigma_translation=5e-4, sigma_rotation=float(np.deg2rad(0.5)))
+    held = ContactCorrector(peg, block, opts, reference_point=peg.centroid)
+    plain = ContactCorrector(peg, block, opts)
+    V = peg.vertices
+    for o, expected in zip(obs, shifted):
+        r, r0 = held.update(o, I4), plain.update(o, I4)
+        assert r.corrected and r0.corrected, (r.status, r0.status)
+        assert 'restored' not in r.status, r.status
+        err, err0 = (np.linalg.norm(V @ (x.T_moving[:3, :3] - expected[:3, :3]).T
+                                    + x.T_moving[:3, 3] - expected[:3, 3], axis=1).max()
+                     for x in (r, r0))
+        assert err < 1e-6 and err0 > 0.5e-3, (err, err0)

@@ -76,6 +76,17 @@ def test_offline_t_peg_flush_with_defaults(tmp_path, t_track):
             y_obs = np.linalg.solve(Tf, To[k])[1, 3]
             y_cor = np.linalg.solve(Tf, Tc[k])[1, 3]
             assert abs(y_cor - y_obs) < 1e-6
+    # --reference-point centroid: the T-peg's centroid keeps its free coordinate instead
+    assert main([str(src), '-o', str(out), '--moving', str(peg_file), '--fixed',
+                 str(block_file), '--reference-point', 'centroid']) == 0
+    _, Tc, _ = read_csv(out)
+    c = t_track.moving.centroid
+    for k, phase in enumerate(t_track.phases):
+        assert penetration_depth(t_track.moving, t_track.fixed, Tc[k], Tf, 0.002) < 1e-5, k
+        if phase == 'inserted_flush':
+            y_obs = (np.linalg.solve(Tf, To[k]) @ np.append(c, 1.0))[1]
+            y_cor = (np.linalg.solve(Tf, Tc[k]) @ np.append(c, 1.0))[1]
+            assert abs(y_cor - y_obs) < 1e-6
 
 
 def test_offline_explicit_relation_units_and_help(tmp_path, t_track, capsys):
@@ -109,6 +120,10 @@ def test_offline_explicit_relation_units_and_help(tmp_path, t_track, capsys):
         main(['--help'])
     help_text = capsys.readouterr().out
     assert '(default: 0.002)' in help_text and '(default: 20.0)' in help_text
+    assert '--reference-point {origin,centroid}' in help_text and \
+        '(default: origin)' in help_text
+    with pytest.raises(SystemExit):
+        main([str(src), '-o', str(out), '--reference-point', 'middle'])
     main([str(src), '-o', str(out)])
     assert "no --moving given; using the shipped model 'peg'" in capsys.readouterr().err
 
@@ -154,6 +169,11 @@ def test_node_refuses_nan_parameters_and_fifo_models(ros_node, tmp_path):
             assert not r.successful and ('finite' in r.reason or 'range' in r.reason), name
         r = node.set_parameters([Parameter('relation', value='vertex 1 face 2')])[0]
         assert not r.successful and 'relation entry' in r.reason
+        r = node.set_parameters([Parameter('reference_point', value='middle')])[0]
+        assert not r.successful and 'origin, centroid' in r.reason
+        assert node.set_parameters([Parameter('reference_point', value='centroid')])[0] \
+            .successful
+        np.testing.assert_allclose(node._options()['reference_point'], node.moving.centroid)
         assert node.set_parameters([Parameter('switch_cost', value=5.0)])[0].successful
     finally:
         node.destroy_node()

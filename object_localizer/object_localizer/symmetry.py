@@ -20,6 +20,7 @@ from typing import Any, List, Tuple
 import numpy as np
 from scipy.spatial import cKDTree
 
+from stereo_manip_tools.mesh_io import surface_centroid
 from stereo_manip_tools.transforms import rotation_about_axis
 
 __all__ = ['ModelSymmetry', 'find_symmetries', 'mesh_symmetry', 'symmetric_pose_error',
@@ -205,18 +206,6 @@ def symmetric_add(pose_estimate: np.ndarray, pose_true: np.ndarray, model_points
     B = np.einsum('kij,nj->kni', G, P - c) + c
     B = B @ Tt[:3, :3].T + Tt[:3, 3]
     return float(np.min(np.mean(np.linalg.norm(B - A[None], axis=2), axis=1)))
-
-
-def surface_centroid(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """
-    Return the area-weighted centroid (3,) [m] of a triangle mesh's surface.
-
-    :param vertices: (V, 3) [m]; :param triangles: (T, 3) vertex indices.
-    """
-    V = np.asarray(vertices, float)
-    tri = V[np.asarray(triangles, dtype=np.int64)]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    return (tri.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum()
 
 
 def mesh_symmetry(mesh: Any, spacing: float = 0.003, max_samples: int = 8000,

@@ -18,7 +18,8 @@ import numpy as np
 
 from stereo_manip_tools.files import open_regular_file
 
-__all__ = ['PolygonMesh', 'load_obj', 'save_obj', 'find_model', 'MODEL_PACKAGE']
+__all__ = ['PolygonMesh', 'load_obj', 'save_obj', 'find_model', 'surface_centroid',
+           'MODEL_PACKAGE']
 
 MODEL_PACKAGE = 'stereo_manip_models'
 
@@ -71,6 +72,21 @@ class PolygonMesh:
         """Copy of the mesh with vertices mapped by the 4x4 transform ``T``."""
         V = self.vertices @ np.asarray(T)[:3, :3].T + np.asarray(T)[:3, 3]
         return PolygonMesh(V, [f.copy() for f in self.faces], self.name)
+
+
+def surface_centroid(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """
+    Return the area-weighted centroid (3,) [m] of a triangle mesh's surface.
+
+    :param vertices: (V, 3) [m]; :param triangles: (T, 3) vertex indices.
+    :raises ValueError: the triangles have no area.
+    """
+    V = np.asarray(vertices, float)
+    tri = V[np.asarray(triangles, dtype=np.int64).reshape(-1, 3)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not area.sum() > 0:
+        raise ValueError('surface_centroid: the triangles have no area')
+    return (tri.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum()
 
 
 def load_obj(path: os.PathLike | str) -> PolygonMesh:
