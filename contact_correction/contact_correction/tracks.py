@@ -21,7 +21,7 @@ Tracks (metres):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis
@@ -137,14 +137,18 @@ def correlated_noise(rng: np.random.Generator, n: int, sigma: float, rho: float
 
 
 def noisy_track(track: Track, rng: np.random.Generator, sigma_t: float, sigma_r: float,
-                rho: float = 0.85) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                rho: float = 0.85, pivot: Optional[np.ndarray] = None
+                ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
     Camera-frame poses of a track.
 
     The fixed object at a (random) pose in front of the camera, the moving object's true pose and
     its observation with correlated errors (translation ``sigma_t`` [m] per axis, rotation
-    ``sigma_r`` [rad] per axis about the moving object's origin).
+    ``sigma_r`` [rad] per axis about the moving object's origin, or about ``pivot``).
 
+    :param pivot: (3,) the point of the moving object [m, its model frame] the rotation errors
+        turn about, where they are independent of the translation errors (a surface-fitting
+        localiser's errors turn about the middle of the seen surface); None: the origin.
     :returns: (T_fixed (4, 4), T_moving_true (N, 4, 4), T_moving_observed (N, 4, 4)).
     """
     a = rng.normal(size=3)
@@ -161,6 +165,9 @@ def noisy_track(track: Track, rng: np.random.Generator, sigma_t: float, sigma_r:
         Rn = rotation_about_axis(er[k], ang) if ang > 0 else np.eye(3)
         obs[k, :3, :3] = Rn @ true[k, :3, :3]
         obs[k, :3, 3] = true[k, :3, 3] + et[k]
+        if pivot is not None:     # the rotation turns about the pivot: it stays in place
+            c = true[k, :3, :3] @ np.asarray(pivot, dtype=float)
+            obs[k, :3, 3] += c - Rn @ c
     return T_fixed, true, obs
 
 

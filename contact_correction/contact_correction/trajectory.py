@@ -216,7 +216,8 @@ def push_out_inequalities(moving: Polyhedron, fixed: Polyhedron, T_moving: np.nd
                           T_fixed: np.ndarray, pairs: Sequence[ContactPair],
                           scales: Tuple[float, float] = (1e-3, np.deg2rad(1.0)),
                           spacing: float = 0.005, tolerance: float = 1e-6,
-                          rounds: int = 4) -> Optional[CorrectionResult]:
+                          rounds: int = 4, max_translation: float = 0.02,
+                          max_rotation: float = 0.35) -> Optional[CorrectionResult]:
     """
     Nearest pose without penetration, non-penetration as inequalities (the last resort).
 
@@ -230,8 +231,13 @@ def push_out_inequalities(moving: Polyhedron, fixed: Polyhedron, T_moving: np.nd
 
     :param pairs: the pairs whose penetration is real at the observation (the guard's).
     :param scales: the stated pose noise (translation [m], rotation [rad]): the metric.
+    :param max_translation: largest accepted change of the moving origin [m], as
+        ``correct_pose``'s: a pose farther from the observation is not a correction of it (a
+        T-peg pulled up out of its slot and pressed into a wall by the noise was pushed 23 mm
+        along the slot, ADD 3.3 -> 24 mm).
+    :param max_rotation: largest accepted orientation change [rad], as ``correct_pose``'s.
     :returns: the result (``method`` 'nonlinear', the pairs in contact at it as its relation)
-        when it leaves no penetration deeper than ``tolerance``, else None.
+        when it leaves no penetration deeper than ``tolerance`` within those limits, else None.
     """
     from scipy.optimize import minimize
     T_o = relative_pose(T_moving, T_fixed)
@@ -258,6 +264,9 @@ def push_out_inequalities(moving: Polyhedron, fixed: Polyhedron, T_moving: np.nd
         x = res.x
         T = pose(x)
         pen = penetration_depth(moving, fixed, T_fixed @ T, T_fixed, spacing)
+        if np.linalg.norm(T[:3, 3] - T_o[:3, 3]) > max_translation or np.linalg.norm(
+                rotation_log(T[:3, :3] @ T_o[:3, :3].T)) > max_rotation:
+            return None
         if pen <= tolerance:
             g = evaluate_contacts(moving, fixed, T, sel)
             on = [p for p, d in zip(sel, g.distances) if abs(d) <= max(tolerance, 1e-7)]
@@ -613,7 +622,9 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
                                    list(frame.pool)).distances if frame.pool else np.zeros(0)
         real = [p for p, d, g in zip(frame.pool, at_obs, guard) if g and d < -tol]
         scales = guard_limits if guard_limits is not None else (1e-3, np.deg2rad(1.0))
-        r = push_out_inequalities(moving, fixed, T_moving, T_fixed, real, scales, spacing, tol)
+        r = push_out_inequalities(moving, fixed, T_moving, T_fixed, real, scales, spacing, tol,
+                                  max_translation=kwargs.get('max_translation', 0.02),
+                                  max_rotation=kwargs.get('max_rotation', 0.35))
         if r is not None:
             r.penetration_before = pen
             r.relation_source = 'recognised, push-out'

@@ -234,3 +234,18 @@ def test_reference_point_through_recognition_and_free_direction_checks(peg_hole)
                                     + x.T_moving[:3, 3] - expected[:3, 3], axis=1).max()
                      for x in (r, r0))
         assert err < 1e-6 and err0 > 0.5e-3, (err, err0)
+
+
+def test_noisy_track_pivot_turns_the_errors_about_that_point():
+    """With ``pivot`` the same draws turn about it: it moves by the translation error only."""
+    from contact_correction.tracks import make_tracks, noisy_track, track_models
+    tr = make_tracks(track_models())[2]
+    c = tr.moving.centroid
+    Tf, T, obs = noisy_track(tr, np.random.default_rng(5), 1e-3, np.deg2rad(2.0))
+    Tf2, T2, obs2 = noisy_track(tr, np.random.default_rng(5), 1e-3, np.deg2rad(2.0), pivot=c)
+    np.testing.assert_allclose(Tf2, Tf)
+    np.testing.assert_allclose(T2, T)
+    np.testing.assert_allclose(obs2[:, :3, :3], obs[:, :3, :3])
+    moved_c = obs2[:, :3, :3] @ c + obs2[:, :3, 3] - (T[:, :3, :3] @ c + T[:, :3, 3])
+    np.testing.assert_allclose(moved_c, obs[:, :3, 3] - T[:, :3, 3], atol=1e-12)
+    assert np.abs(obs2[:, :3, 3] - obs[:, :3, 3]).max() > 1e-4   # the origin moves differently
