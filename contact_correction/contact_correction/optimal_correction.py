@@ -61,6 +61,7 @@ __all__ = [
     'rotational_constraint',
     'rotational_constraint_rank',
     'constraint_directions',
+    'held_point',
     'reference_translation',
     'scaled_singular_values',
     'optimal_orientation_rank2',
@@ -392,6 +393,19 @@ def classify_rank1(moving: Polyhedron, fixed: Polyhedron, T_rel_S: np.ndarray,
     return 'other', None, None
 
 
+def held_point(T_rel: np.ndarray, reference_point: Optional[np.ndarray] = None) -> np.ndarray:
+    """
+    Return where a point of the moving object is at the relative pose ``T_rel`` (4x4).
+
+    :param reference_point: (3,) [m, moving frame] (``correct_pose``'s); None: the origin.
+    :return: (3,) [m, fixed frame].
+    """
+    T = np.asarray(T_rel, dtype=float)
+    if reference_point is None:
+        return T[:3, 3].copy()
+    return T[:3, :3] @ np.asarray(reference_point, dtype=float).reshape(3) + T[:3, 3]
+
+
 def reference_translation(T_rel_E: np.ndarray, R: np.ndarray,
                           reference_point: Optional[np.ndarray] = None) -> np.ndarray:
     """
@@ -412,11 +426,10 @@ def reference_translation(T_rel_E: np.ndarray, R: np.ndarray,
     :param R: the corrected orientation (3x3).
     :param reference_point: (3,) [m, moving frame]; None: the origin (``t_E`` returned).
     """
-    t_E = np.asarray(T_rel_E, dtype=float)[:3, 3]
     if reference_point is None:
-        return t_E.copy()
-    c = np.asarray(reference_point, dtype=float).reshape(3)
-    return t_E + (np.asarray(T_rel_E, dtype=float)[:3, :3] - np.asarray(R, dtype=float)) @ c
+        return held_point(T_rel_E)
+    return held_point(T_rel_E, reference_point) - np.asarray(R, dtype=float) @ np.asarray(
+        reference_point, dtype=float).reshape(3)
 
 
 def optimal_translation(moving: Polyhedron, fixed: Polyhedron, R_opt: np.ndarray,

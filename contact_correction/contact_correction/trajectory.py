@@ -32,14 +32,14 @@ from .contact_relation import (
     penetration_depth, relative_pose, VERTEX)
 from .correction import correct_pose, CorrectionResult
 from .nonlinear_correction import apply_screw, constraint_rows
-from .optimal_correction import constraint_directions, constraint_matrix
+from .optimal_correction import constraint_directions, constraint_matrix, held_point
 from .polyhedron import Polyhedron
 from .recognition import (
     FrameCandidates, Hypothesis, recognise_track, RecognitionOptions, RelationRecognizer,
     RelationTracker)
 
 __all__ = ['correct_trajectory', 'trajectory_components', 'ContactCorrector',
-           'correct_recognised', 'guard_limits', 'held_point', 'push_out_inequalities']
+           'correct_recognised', 'guard_limits', 'push_out_inequalities']
 
 #: alternative relations tried when the chosen one is refused
 MAX_FALLBACKS = 3
@@ -83,12 +83,13 @@ def _honour_free_directions(moving: Polyhedron, fixed: Polyhedron, T_moving: np.
 
     The free translations of ``r.pairs`` as the recognition sees them
     (:func:`_recognised_free_translation`, at the observed pose, fixed frame). A change of the
-    moving origin (or of ``r.reference_point``, :func:`held_point`) along them above
-    :data:`FREE_TOLERANCE` is removed when the pose keeps the relation's contacts (within
-    the residual tolerance) and stays out of penetration there; else a non-penetrating
-    observation is passed through (``guarded``, status says why); else (the observation
-    penetrates, the correction is the only one removing it) the correction is kept and
-    flagged ``guarded`` with the size of the change in its status.
+    moving origin (or of ``r.reference_point``, :func:`~contact_correction.
+    optimal_correction.held_point`) along them above :data:`FREE_TOLERANCE` is removed when
+    the pose keeps the relation's contacts (within the residual tolerance) and stays out of
+    penetration there; else a non-penetrating observation is passed through (``guarded``,
+    status says why); else (the observation penetrates, the correction is the only one
+    removing it) the correction is kept and flagged ``guarded`` with the size of the change
+    in its status.
     """
     if not r.corrected or not r.pairs:
         return r
@@ -159,18 +160,6 @@ def _adopt_relative_pose(r: CorrectionResult, moving: Polyhedron, fixed: Polyhed
     return r
 
 
-def held_point(T_rel: np.ndarray, reference_point: Optional[np.ndarray] = None) -> np.ndarray:
-    """
-    Return where the correction's reference point is at the relative pose ``T_rel`` (4x4).
-
-    :param reference_point: (3,) [m, moving frame] (``correct_pose``'s); None: the origin.
-    :return: (3,) [m, fixed frame].
-    """
-    if reference_point is None:
-        return np.asarray(T_rel, dtype=float)[:3, 3].copy()
-    return T_rel[:3, :3] @ np.asarray(reference_point, dtype=float).reshape(3) + T_rel[:3, 3]
-
-
 def _solve_keeping_free(moving: Polyhedron, fixed: Polyhedron, T_start: np.ndarray,
                         T_obs: np.ndarray, pairs: List[ContactPair], F: np.ndarray,
                         tol: float, reference_point: Optional[np.ndarray] = None,
@@ -181,7 +170,7 @@ def _solve_keeping_free(moving: Polyhedron, fixed: Polyhedron, T_start: np.ndarr
     Gauss-Newton from ``T_start`` (moving in fixed frame, 4x4) on the screw ``[w, v]``
     (:func:`~contact_correction.nonlinear_correction.apply_screw`, rotation scaled by the
     moving object's size): the contact distances' rows of Eq. 2 and, as exact rows, the
-    change of the reference point ``p`` (:func:`held_point`; the origin by default) along
+    change of the reference point ``p`` (``held_point``; the origin by default) along
     the free translations ``F`` (k, 3; fixed frame) that brings it back to ``T_obs``'s
     (``f . (w x p + v) = f . (p_obs - p)``); minimum-norm steps.
 
@@ -263,16 +252,16 @@ def push_out_inequalities(moving: Polyhedron, fixed: Polyhedron, T_moving: np.nd
             return None
         x = res.x
         T = pose(x)
-        pen = penetration_depth(moving, fixed, T_fixed @ T, T_fixed, spacing)
-        if np.linalg.norm(T[:3, 3] - T_o[:3, 3]) > max_translation or np.linalg.norm(
-                rotation_log(T[:3, :3] @ T_o[:3, :3].T)) > max_rotation:
+        turn = rotation_log(T[:3, :3] @ T_o[:3, :3].T)
+        if np.linalg.norm(T[:3, 3] - T_o[:3, 3]) > max_translation \
+                or np.linalg.norm(turn) > max_rotation:
             return None
+        pen = penetration_depth(moving, fixed, T_fixed @ T, T_fixed, spacing)
         if pen <= tolerance:
             g = evaluate_contacts(moving, fixed, T, sel)
             on = [p for p, d in zip(sel, g.distances) if abs(d) <= max(tolerance, 1e-7)]
             r = CorrectionResult(T_moving=T_fixed @ T, corrected=True, method='nonlinear',
-                                 pairs=on, penetration_after=pen,
-                                 rotation_change=rotation_log(T[:3, :3] @ T_o[:3, :3].T),
+                                 pairs=on, penetration_after=pen, rotation_change=turn,
                                  status='non-linear push-out, non-penetration as inequalities '
                                         f'({len(sel)} pairs, {len(on)} in contact at the result)')
             return _adopt_relative_pose(r, moving, fixed, T_fixed, T_o, T, '')
