@@ -141,7 +141,9 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
                  element_margin: float = 1e-6,
                  rank1_method: str = 'auto', prune_off_element: bool = False,
                  penetration_before: Optional[float] = None,
-                 reference_point: Optional[np.ndarray] = None) -> CorrectionResult:
+                 reference_point: Optional[np.ndarray] = None,
+                 nonlinear_pivot: Optional[np.ndarray] = None,
+                 nonlinear_length_scale: Optional[float] = None) -> CorrectionResult:
     """
     Correct the observed pose of the moving object with the contact relation.
 
@@ -175,14 +177,23 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         the optimal correction's translation rule keeps where it was observed along every
         direction the relation leaves free (:func:`~contact_correction.optimal_correction.
         reference_translation`); None: the moving origin (the chapter). A non-linear-only
-        result (``optimal`` False, or the optimal step refused) keeps the origin's: its
-        rotation is a feasibility fix, not an estimate of the error, and the origin of a part
-        is usually at its base, near its contacts. The moving polyhedron's ``centroid`` makes the
-        correction independent of where the model's origin is: on the demo's peg (origin at
-        its bottom face) sliding on the block, whose localised pose tilts about a point
-        60-90 mm up, holding the origin moved the whole peg by the tilt's lever arm (median
-        ADD above the localised one in 4 of 7 runs, one tie, even with the true relation
-        given); the centroid brought every run's median, p95, max and mean below.
+        result (``optimal`` False, or the optimal step refused) keeps the free coordinates of
+        ``nonlinear_pivot`` (the origin's without one). The moving polyhedron's ``centroid``
+        makes the correction independent of where the model's origin is: on the demo's peg
+        (origin at its bottom face) sliding on the block, whose localised pose tilts about a
+        point 60-90 mm up, holding the origin moved the whole peg by the tilt's lever arm
+        (median ADD above the localised one in 4 of 7 runs, one tie, even with the true
+        relation given); the centroid brought every run's median, p95, max and mean below.
+    :param nonlinear_pivot: (3,) the point of the moving object [m, moving model frame] the
+        non-linear step's metric turns about (:func:`~contact_correction.
+        nonlinear_correction.correct_nonlinear`'s ``pivot``); a non-linear-only result then
+        keeps this point's coordinates along the free directions, and records it as its
+        ``reference_point``. None: the fixed frame's origin, and the moving origin's free
+        coordinates kept (the chapter's step).
+    :param nonlinear_length_scale: the non-linear step's ``L`` [m] (default: a quarter of the
+        moving object's bounding-box diagonal); ``sigma_translation / sigma_rotation`` with
+        ``nonlinear_pivot`` the point the pose errors turn about makes a non-linear-only result
+        the feasible pose nearest the observation in stated-noise units.
     """
     t0 = time.perf_counter()
     raw = np.array(T_moving, dtype=float, copy=True) if np.size(T_moving) == 16 \
@@ -243,7 +254,10 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         # of its slot, a peg pulled out of a hole: 0.2-0.7 mm on the tracks benchmark); with
         # its orientation kept the relation is linear in the translation, and the solution
         # nearest the observation (Eq. 2's translation rule) keeps every free component
-        t, res, _ = optimal_translation(moving, fixed, T_rel[:3, :3], T_rel_E[:3, 3], pairs,
+        target = T_rel_E[:3, 3]
+        if nonlinear_pivot is not None:     # the pivot's free coordinates kept, not the origin's
+            target = T_rel_E[:3, :3] @ pivot + target - T_rel[:3, :3] @ pivot
+        t, res, _ = optimal_translation(moving, fixed, T_rel[:3, :3], target, pairs,
                                         free_directions=False)
         if res > residual_tolerance:
             return T_rel
@@ -254,7 +268,7 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
     def solve(length_scale: Optional[float], schedule: tuple):
         nl = correct_nonlinear(moving, fixed, T_rel_E, pairs, length_scale=length_scale,
                                anchor_schedule=schedule,
-                               residual_tolerance=residual_tolerance)
+                               residual_tolerance=residual_tolerance, pivot=pivot)
         if not nl.converged or nl.max_residual > residual_tolerance:
             return nl, None, '', '', None
         nl.T_rel = keep_free_translation(nl.T_rel)
@@ -274,13 +288,16 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         A, geom = constraint_matrix(moving, fixed, T_rel, pairs)
         return nl, T_rel, method, status, (A, geom)
 
+    pivot = None if nonlinear_pivot is None \
+        else np.asarray(nonlinear_pivot, dtype=float).reshape(3)
+    step_scale = nonlinear_length_scale or max(moving.size / 4.0, 1e-6)
     try:
-        nl, T_rel, method, status, cm = solve(None, (3e-2, 3e-3))
+        nl, T_rel, method, status, cm = solve(step_scale, (3e-2, 3e-3))
         if cm is not None and degenerate(cm[0]):
             # the non-linear step reached a degenerate configuration of the relation (e.g.
             # a peg just inside a hole pulled up to the rim, where it may tilt): retry with
             # rotations cheaper and a stronger pull towards the observation
-            nl2, T2, m2, s2, cm2 = solve(moving.size / 16.0, (1e-1, 3e-2, 3e-3, 3e-4))
+            nl2, T2, m2, s2, cm2 = solve(step_scale / 4.0, (1e-1, 3e-2, 3e-3, 3e-4))
             if cm2 is not None:
                 nl, T_rel, method, status, cm = nl2, T2, m2, s2 + ' (retried)', cm2
     except ValueError as exc:
@@ -362,7 +379,8 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         pairs=pairs, directions=dirs, geometry=geom, penetration_before=pen_before,
         penetration_after=pen_after, max_residual=float(np.max(np.abs(geom.distances))),
         translation_change=dt, rotation_change=dr,
-        reference_point=None if method == 'nonlinear' or reference_point is None
+        reference_point=(None if pivot is None else pivot.copy()) if method == 'nonlinear'
+        else None if reference_point is None
         else np.asarray(reference_point, dtype=float).reshape(3).copy())
     res.elapsed = time.perf_counter() - t0
     return res

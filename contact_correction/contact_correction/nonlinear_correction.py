@@ -11,7 +11,11 @@ Eq. 2 rows ``[p x f, f]`` (exact at contact). Steps are screws ``[w, v]`` applie
 object in the fixed frame, ``x -> R(w) x + v``; the minimum-norm step uses the metric
 ``|v|^2 + (L |w|)^2`` with ``L`` the moving object's size, so that the result is the feasible
 pose closest to the observation in that metric (to first order), ``L`` = a quarter of the
-bounding-box diagonal by default.
+bounding-box diagonal by default. With a ``pivot`` (a point of the moving object) the screws
+turn about that point, ``x -> R(w) (x - c) + c + v``: the metric is then the pivot's
+displacement and the rotation, independent of where the fixed model's origin is (a push-out,
+whose result is this step's, uses the stated pose noise about the correction's reference
+point).
 """
 
 from __future__ import annotations
@@ -50,19 +54,23 @@ class NonlinearResult:
     converged: bool
 
 
-def apply_screw(T: np.ndarray, w: np.ndarray, v: np.ndarray) -> np.ndarray:
+def apply_screw(T: np.ndarray, w: np.ndarray, v: np.ndarray,
+                centre: np.ndarray | None = None) -> np.ndarray:
     """
-    Move a pose by the finite screw ``x -> R(w) x + v`` in its parent frame.
+    Move a pose by the finite screw ``x -> R(w) (x - c) + c + v`` in its parent frame.
 
     :param T: 4x4 pose.
     :param w: rotation vector [rad], shape (3,).
     :param v: translation [m], shape (3,).
+    :param centre: (3,) the point ``c`` the rotation turns about [m, parent frame]; None: the
+        parent frame's origin.
     """
     angle = float(np.linalg.norm(w))
     Rw = rotation_about_axis(w, angle) if angle > 0 else np.eye(3)
+    c = np.zeros(3) if centre is None else np.asarray(centre, dtype=float)
     out = np.eye(4)
     out[:3, :3] = Rw @ T[:3, :3]
-    out[:3, 3] = Rw @ T[:3, 3] + v
+    out[:3, 3] = Rw @ (T[:3, 3] - c) + c + v
     return out
 
 
@@ -162,9 +170,10 @@ try:  # the compiled iteration (same steps as the Python loop below, which stays
     @numba.njit(cache=True, fastmath=False, error_model='numpy')
     def _iterate(T_obs, K, vf, vf_x, vf_n, vf_off, fv, fv_w, fv_n, fv_off, ee, ee_a, ee_em,
                  ee_b, ee_ef, ee_sg, L, schedule, max_iterations, residual_tolerance,
-                 rcond):  # pragma: no cover
+                 rcond, pivot, use_pivot):  # pragma: no cover
         """Run the loop of correct_nonlinear: (T_best, res_best, it_best, parallel ee row)."""
         T = T_obs.copy()
+        c_obs = np.ascontiguousarray(T_obs[:3, :3]) @ pivot + T_obs[:3, 3]
         scale = np.array([1.0 / L, 1.0 / L, 1.0 / L, 1.0, 1.0, 1.0])
         d = np.zeros(K)
         P = np.zeros((K, 3))
@@ -190,11 +199,16 @@ try:  # the compiled iteration (same steps as the Python loop below, which stays
                     T_best, res_best, it_best, have_best = T.copy(), res, it, True
                 if mu == 0.0 and res <= 1e-3 * residual_tolerance:
                     break
+                # the screw's centre: the pivot where it is now, else the fixed origin
+                c = np.zeros(3)
+                if use_pivot:
+                    c = np.ascontiguousarray(T[:3, :3]) @ pivot + T[:3, 3]
                 J = np.empty((K, 6))
                 for k in range(K):
-                    J[k, 0] = (P[k, 1] * N[k, 2] - P[k, 2] * N[k, 1]) * scale[0]
-                    J[k, 1] = (P[k, 2] * N[k, 0] - P[k, 0] * N[k, 2]) * scale[1]
-                    J[k, 2] = (P[k, 0] * N[k, 1] - P[k, 1] * N[k, 0]) * scale[2]
+                    p0, p1, p2 = P[k, 0] - c[0], P[k, 1] - c[1], P[k, 2] - c[2]
+                    J[k, 0] = (p1 * N[k, 2] - p2 * N[k, 1]) * scale[0]
+                    J[k, 1] = (p2 * N[k, 0] - p0 * N[k, 2]) * scale[1]
+                    J[k, 2] = (p0 * N[k, 1] - p1 * N[k, 0]) * scale[2]
                     J[k, 3] = N[k, 0]
                     J[k, 4] = N[k, 1]
                     J[k, 5] = N[k, 2]
@@ -202,7 +216,10 @@ try:  # the compiled iteration (same steps as the Python loop below, which stays
                     e = np.empty(6)
                     e[:3] = L * _rot_log(np.ascontiguousarray(T[:3, :3])
                                          @ np.ascontiguousarray(Ro.T))
-                    e[3:] = T[:3, 3] - T_obs[:3, 3]
+                    if use_pivot:
+                        e[3:] = c - c_obs
+                    else:
+                        e[3:] = T[:3, 3] - T_obs[:3, 3]
                     Jm = np.zeros((K + 6, 6))
                     Jm[:K] = J
                     rhs = np.empty(K + 6)
@@ -223,7 +240,7 @@ try:  # the compiled iteration (same steps as the Python loop below, which stays
                 Rw = _rot_about(w, angle) if angle > 0 else np.eye(3)
                 Tn = np.eye(4)
                 Tn[:3, :3] = Rw @ np.ascontiguousarray(T[:3, :3])
-                Tn[:3, 3] = Rw @ np.ascontiguousarray(T[:3, 3]) + step[3:]
+                Tn[:3, 3] = Rw @ (np.ascontiguousarray(T[:3, 3]) - c) + c + step[3:]
                 T = Tn
                 size = np.linalg.norm(step / scale)
                 if not have_first:
@@ -249,7 +266,7 @@ def warm_up() -> None:
     z3, z1, i0 = np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64)
     _iterate(np.eye(4), 1, np.zeros(1, dtype=np.int64), np.zeros((1, 3)),
              np.array([[0.0, 0.0, 1.0]]), np.array([-1e-3]), i0, z3, z3, z1, i0, z3, z3, z3,
-             z3, z1, 0.1, np.array([3e-2, 0.0]), 5, 1e-9, 1e-6)
+             z3, z1, 0.1, np.array([3e-2, 0.0]), 5, 1e-9, 1e-6, np.zeros(3), False)
 
 
 def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.ndarray,
@@ -257,7 +274,8 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
                       residual_tolerance: float = RESIDUAL_TOLERANCE,
                       length_scale: float | None = None, rcond: float = 1e-6,
                       anchor_schedule: tuple = (3e-2, 3e-3),
-                      compiled: bool | None = None) -> NonlinearResult:
+                      compiled: bool | None = None,
+                      pivot: np.ndarray | None = None) -> NonlinearResult:
     """
     Nearby pose satisfying every contact of ``pairs`` (non-linear step, Takamatsu 2007).
 
@@ -275,6 +293,13 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
     :param anchor_schedule: decreasing weights of the pull towards the observed pose in the
         Levenberg-Marquardt stages run before Gauss-Newton (scaled units).
     :param max_iterations: iteration limit per stage.
+    :param pivot: (3,) a point of the moving object [m, moving model frame]: the steps turn
+        about it and their translation is its displacement, so the metric is
+        ``|v_pivot|^2 + (L |w|)^2`` and the result is the feasible pose nearest the observation
+        in it (with ``L`` = sigma_translation / sigma_rotation about the point the pose errors
+        turn about: nearest in stated-noise units, whatever the fixed model's origin). None:
+        the fixed frame's origin (the chapter's step: where the result goes along the free
+        directions does not matter, the optimal step sets it).
     :param compiled: run the iteration compiled (numba; the same steps, results equal to the
         Python loop's to rounding); None: when numba is available. False: the Python loop
         (the reference).
@@ -287,6 +312,7 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
         return NonlinearResult(T, 0.0, 0, True)
     L = float(length_scale) if length_scale else max(moving.size / 4.0, 1e-6)
     scale = np.array([1.0 / L] * 3 + [1.0] * 3)
+    piv = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=float).reshape(3).copy()
     best = None
     it = 0
     evaluate = ContactEvaluator(moving, fixed, pairs)
@@ -299,7 +325,7 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
             getattr(e, 'fv_off', z1), e.ee, getattr(e, 'ee_a', z3), getattr(e, 'ee_em', z3),
             getattr(e, 'ee_b', z3), getattr(e, 'ee_ef', z3), e.sg, L,
             np.array(tuple(anchor_schedule) + (0.0,), dtype=float), int(max_iterations),
-            float(residual_tolerance), float(rcond))
+            float(residual_tolerance), float(rcond), piv, pivot is not None)
         if bad >= 0:
             raise ValueError(f'edge-edge pair ({e.pairs[e.ee[bad]]}) has parallel edges at '
                              'this pose')
@@ -319,10 +345,13 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
                 best = (T.copy(), res, it)
             if mu == 0.0 and res <= 1e-3 * residual_tolerance:
                 break       # converged well past the acceptance tolerance (quadratic steps)
-            J = constraint_rows(g.points, g.normals) * scale
+            # the screw's centre: the pivot where it is now, else the fixed origin
+            c = T[:3, :3] @ piv + T[:3, 3] if pivot is not None else np.zeros(3)
+            J = constraint_rows(g.points - c, g.normals) * scale
             if mu > 0.0:
-                e = np.concatenate([L * rotation_log(T[:3, :3] @ T_obs[:3, :3].T),
-                                    T[:3, 3] - T_obs[:3, 3]])
+                moved = (c - (T_obs[:3, :3] @ piv + T_obs[:3, 3]) if pivot is not None
+                         else T[:3, 3] - T_obs[:3, 3])
+                e = np.concatenate([L * rotation_log(T[:3, :3] @ T_obs[:3, :3].T), moved])
                 J = np.vstack([J, mu * np.eye(6)])
                 rhs = np.concatenate([-g.distances, -mu * e])
                 step, *_ = np.linalg.lstsq(J, rhs, rcond=None)
@@ -335,7 +364,7 @@ def correct_nonlinear(moving: Polyhedron, fixed: Polyhedron, T_rel_observed: np.
             ang = np.linalg.norm(step[:3])
             if ang > 0.3:
                 step *= 0.3 / ang
-            T = apply_screw(T, step[:3], step[3:])
+            T = apply_screw(T, step[:3], step[3:], centre=c)
             size = float(np.linalg.norm(step / scale))
             first = size if first is None else first
             if mu > 0.0 and size < 1e-2 * first:

@@ -24,7 +24,7 @@ def observed():
 
 
 def test_nonlinear_compiled_equals_python_loop(observed):
-    """Same iterate, residual and iteration count on relations detected near noisy poses."""
+    """Same iterate, residual and iteration count near noisy poses (also about a pivot)."""
     tried = 0
     for m, f, T in observed:
         pairs = detect_contact_relation(m, f, T, np.eye(4), tolerance=3e-3,
@@ -32,7 +32,8 @@ def test_nonlinear_compiled_equals_python_loop(observed):
         if not pairs:
             continue
         for kw in ({}, {'length_scale': m.size / 16.0,
-                        'anchor_schedule': (1e-1, 3e-2, 3e-3, 3e-4)}):
+                        'anchor_schedule': (1e-1, 3e-2, 3e-3, 3e-4)},
+                   {'pivot': m.centroid, 'length_scale': 1.5e-3 / np.deg2rad(2.0)}):
             ref = correct_nonlinear(m, f, T, pairs, compiled=False, **kw)
             fast = correct_nonlinear(m, f, T, pairs, compiled=True, **kw)
             assert fast.converged == ref.converged
