@@ -611,8 +611,10 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
                         f'{first.status if first else "free"})'
             return r
         first = first or r
-    if check and pen > tol and chosen.pairs and not (first is not None and first.guarded):
-        # last resort: the penetrating pairs alone
+    if check and pen > tol and not (first is not None and first.guarded):
+        # last resort: the penetrating pairs alone (also after a free choice, whose push-out
+        # above counted only guarded pairs: a T-peg 5.9 mm into its slot's wall, no pair
+        # passing the nearest-exit test, had its penetration passed through)
         r = push_out((), last_resort=True)
         if r is not None:
             r.status += ' (push-out: no recognised relation could be enforced and the ' \

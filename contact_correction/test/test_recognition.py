@@ -21,7 +21,7 @@ from contact_correction.shapes import t_peg_mesh, t_slot_block_mesh
 from contact_correction.tracks import equivalent_relations as equivalent, make_tracks, \
     noisy_track, track_models
 from contact_correction.trajectory import (
-    ContactCorrector, correct_recognised, correct_trajectory, guard_limits)
+    ContactCorrector, correct_recognised, correct_trajectory, guard_limits, stated_noise)
 import numpy as np
 import pytest
 from stereo_manip_tools.mesh_io import find_model, load_obj, PolygonMesh
@@ -263,6 +263,44 @@ def test_penetrating_observation_is_never_passed_through(models):
     assert r.corrected and ('fallback' in r.relation_source
                             or 'push-out' in r.relation_source), r.status
     assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-8
+
+
+def test_free_choice_with_no_guarded_pair_still_pushes_out(models):
+    """
+    A free choice on an observation 5.9 mm into the slot's wall whose pairs the guard rejects.
+
+    The T-peg pulled 15 mm up its slot (the stem between the walls), drawn as
+    ``bench/contact_tracks.py --seed 7`` draws it (frame 33), observed 4.4 mm off the slot's
+    axis: no pair passes the guard's nearest-exit test, so the push-out of the free choice has
+    nothing to push and every relation of the frame leaves penetration. The last resort (the
+    penetrating pairs on the face of the deepest one) was tried only for a non-empty choice:
+    the 5.9 mm penetration was passed through. Now the stem is pushed back between the walls,
+    its free coordinates (along the slot, up) kept.
+    """
+    tracks = make_tracks(models)
+    rng = np.random.default_rng(7)
+    levels = [(1e-3, np.deg2rad(1.0)), (1.5e-3, np.deg2rad(2.0))]
+    for level in levels:                 # the draws before it, in the benchmark's order
+        for _ in range(3):
+            noisy_track(tracks[0], rng, *level)
+    for _ in range(3):
+        noisy_track(tracks[1], rng, *levels[0])
+    tr = tracks[1]
+    assert tr.name == 't_peg_pull_up'
+    Tf, _, To = noisy_track(tr, rng, *levels[1])
+    T = To[33]
+    assert penetration_depth(tr.moving, tr.fixed, T, Tf, 0.002) > 5e-3
+    opts = RecognitionOptions(1.5e-3, np.deg2rad(2.0), noise_correlation=0.85)
+    rec = RelationRecognizer(tr.moving, tr.fixed, opts)
+    fc = rec.frame(T, Tf)
+    free = Hypothesis(frozenset(), (), 0.0, 0, 0.0)
+    r = correct_recognised(tr.moving, tr.fixed, T, Tf, free, fc, rec.last_guard(), rec.margin,
+                           guard_limits(opts), stated_noise(opts))
+    assert r.corrected and 'push-out' in r.relation_source, r.status
+    assert penetration_depth(tr.moving, tr.fixed, r.T_moving, Tf, 0.002) < 1e-8
+    rel_obs, rel = relative_pose(T, Tf), relative_pose(r.T_moving, Tf)
+    assert abs(rel[0, 3]) < 1e-6                            # the stem centred in the slot
+    assert np.abs(rel[1:3, 3] - rel_obs[1:3, 3]).max() < 1e-6   # along the slot and up: kept
 
 
 def test_free_choice_on_a_penetrating_observation_is_pushed_out_minimally(models):
