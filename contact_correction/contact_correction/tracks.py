@@ -178,11 +178,16 @@ def equivalent_relations(m: Polyhedron, f: Polyhedron, T_true: np.ndarray, truth
     How the tests and the benchmark score a recognised relation against a track's truth: every
     pair of ``pairs`` is in contact at ``T_true`` (4x4, moving in fixed frame) and its constraint
     matrix has the rank of the truth's and of both stacked (translation columns scaled by the
-    moving object's size).
+    moving object's size). A pair that is not defined at ``T_true`` (an edge-edge pair whose
+    edges are parallel there) does not hold: the relation is not equivalent.
     """
     if not truth or not pairs:
         return not truth and not pairs
-    if np.abs(evaluate_contacts(m, f, T_true, list(pairs)).distances).max() > 1e-6:
+    try:
+        d = evaluate_contacts(m, f, T_true, list(pairs)).distances
+    except ValueError:      # e.g. an edge-edge pair with parallel edges at the true pose
+        return False
+    if np.abs(d).max() > 1e-6:
         return False
     s = np.array([1.0 / m.size] * 3 + [1.0] * 3)
     A1 = constraint_matrix(m, f, T_true, list(truth))[0] * s

@@ -330,6 +330,32 @@ def test_free_choice_on_a_penetrating_observation_is_pushed_out_minimally(models
     assert np.abs(g.distances).max() < 1e-9
 
 
+def test_relation_with_a_pair_undefined_at_the_truth_is_not_equivalent(models, tracks):
+    """
+    Scoring a recognised relation with an edge-edge pair whose edges are parallel at the truth.
+
+    ``bench/contact_tracks.py --seed 1`` (also 2, 6) stopped with "edge-edge pair ... has
+    parallel edges at this pose" while scoring: a relation recognised at a noisy pose held an
+    edge-edge pair whose edges are parallel at the true pose. Such a relation does not hold at
+    the truth: it is scored as not equivalent.
+    """
+    tr = tracks['t_peg_slot_y']
+    m, f = tr.moving, tr.fixed
+    k = tr.phases.index('inserted_flush')
+    T = tr.T_rel[k]
+    truth = detect_contact_relation(m, f, T, I4, tolerance=1e-7)
+    dm = (m.vertices[m.edge_vertices[:, 1]] - m.vertices[m.edge_vertices[:, 0]]) @ T[:3, :3].T
+    df = f.vertices[f.edge_vertices[:, 1]] - f.vertices[f.edge_vertices[:, 0]]
+    cos = np.abs((dm / np.linalg.norm(dm, axis=1)[:, None])
+                 @ (df / np.linalg.norm(df, axis=1)[:, None]).T)
+    a, b = np.argwhere(cos > 1.0 - 1e-12)[0]
+    parallel = ContactPair(1, int(a), 1, int(b))
+    with pytest.raises(ValueError, match='parallel'):
+        evaluate_contacts(m, f, T, [parallel])
+    assert not equivalent(m, f, T, truth, [parallel] + list(truth))
+    assert equivalent(m, f, T, truth, truth)
+
+
 def test_push_out_is_nearest_in_stated_noise_units_whatever_the_fixed_origin(models):
     """
     A push-out turns about the reference point in the stated-noise metric, in any fixed frame.
