@@ -303,6 +303,45 @@ def test_free_choice_with_no_guarded_pair_still_pushes_out(models):
     assert np.abs(rel[1:3, 3] - rel_obs[1:3, 3]).max() < 1e-6   # along the slot and up: kept
 
 
+def test_no_guarded_pair_inequality_push_out_within_the_guard(models):
+    """
+    The T-peg held flush in its zero-clearance slot, observed 4.6 mm into it, online.
+
+    Drawn as ``bench/contact_tracks.py --seed 9`` draws it (t_peg_slot_y, 1.5 mm / 2 deg,
+    third draw, frame 29). The chosen relation, every fallback and push-out left penetration
+    or ended degenerate, and no pair passed the guard's nearest-exit test, so the inequality
+    push-out had nothing to start from: the 4.6 mm penetration was passed through. It now takes
+    every penetrating pair, each round searched from the observation, and its result is used
+    only within the correction guard: ADD 4.2 -> 0.4 mm, flagged.
+    """
+    tracks = make_tracks(models)
+    rng = np.random.default_rng(9)
+    levels = [(1e-3, np.deg2rad(1.0)), (1.5e-3, np.deg2rad(2.0))]
+    for _ in range(3):
+        noisy_track(tracks[0], rng, *levels[0])
+    for _ in range(2):
+        noisy_track(tracks[0], rng, *levels[1])
+    tr = tracks[0]
+    assert tr.name == 't_peg_slot_y'
+    Tf, _, To = noisy_track(tr, rng, *levels[1])
+    m, f = tr.moving, tr.fixed
+    assert penetration_depth(m, f, To[29], Tf, 0.002) > 4e-3
+    cor = ContactCorrector(m, f, RecognitionOptions(1.5e-3, np.deg2rad(2.0),
+                                                    noise_correlation=0.85))
+    for k in range(29):
+        cor.update(To[k], Tf)
+    r = cor.update(To[29], Tf)
+    assert r.corrected and r.guarded, r.status
+    assert penetration_depth(m, f, r.T_moving, Tf, 0.002) < 1e-6
+
+    def add(T):
+        P = m.vertices
+        T_rel = relative_pose(T, Tf)
+        return np.linalg.norm((P @ T_rel[:3, :3].T + T_rel[:3, 3])
+                              - (P @ tr.T_rel[29][:3, :3].T + tr.T_rel[29][:3, 3]), axis=1).mean()
+    assert add(To[29]) > 4e-3 and add(r.T_moving) < 1e-3
+
+
 def test_free_choice_on_a_penetrating_observation_is_pushed_out_minimally(models):
     """
     Check that a free choice on a penetrating observation is pushed out minimally.
