@@ -277,20 +277,9 @@ def test_free_choice_with_no_guarded_pair_still_pushes_out(models):
     the 5.9 mm penetration was passed through. Now the stem is pushed back between the walls,
     its free coordinates (along the slot, up) kept.
     """
-    tracks = make_tracks(models)
-    rng = np.random.default_rng(7)
-    levels = [(1e-3, np.deg2rad(1.0)), (1.5e-3, np.deg2rad(2.0))]
-    for level in levels:                 # the draws before it, in the benchmark's order
-        for _ in range(3):
-            noisy_track(tracks[0], rng, *level)
-    for _ in range(3):
-        noisy_track(tracks[1], rng, *levels[0])
-    tr = tracks[1]
-    assert tr.name == 't_peg_pull_up'
-    Tf, _, To = noisy_track(tr, rng, *levels[1])
+    tr, Tf, To, opts = _benchmark_observations(models, 't_peg_pull_up', 1, 0, noise_seed=7)
     T = To[33]
     assert penetration_depth(tr.moving, tr.fixed, T, Tf, 0.002) > 5e-3
-    opts = RecognitionOptions(1.5e-3, np.deg2rad(2.0), noise_correlation=0.85)
     rec = RelationRecognizer(tr.moving, tr.fixed, opts)
     fc = rec.frame(T, Tf)
     free = Hypothesis(frozenset(), (), 0.0, 0, 0.0)
@@ -303,7 +292,14 @@ def test_free_choice_with_no_guarded_pair_still_pushes_out(models):
     assert np.abs(rel[1:3, 3] - rel_obs[1:3, 3]).max() < 1e-6   # along the slot and up: kept
 
 
-def test_no_guarded_pair_inequality_push_out_within_the_guard(models):
+def _vertex_add(m, T_rel_a, T_rel_b):
+    """Mean distance [m] between the model's vertices at two relative poses."""
+    P = m.vertices
+    return float(np.linalg.norm((P @ T_rel_a[:3, :3].T + T_rel_a[:3, 3])
+                                - (P @ T_rel_b[:3, :3].T + T_rel_b[:3, 3]), axis=1).mean())
+
+
+def test_inequality_push_out_when_no_pair_passes_the_guard(models):
     """
     The T-peg held flush in its zero-clearance slot, observed 4.6 mm into it, online.
 
@@ -314,32 +310,17 @@ def test_no_guarded_pair_inequality_push_out_within_the_guard(models):
     every penetrating pair, each round searched from the observation, and its result is used
     only within the correction guard: ADD 4.2 -> 0.4 mm, flagged.
     """
-    tracks = make_tracks(models)
-    rng = np.random.default_rng(9)
-    levels = [(1e-3, np.deg2rad(1.0)), (1.5e-3, np.deg2rad(2.0))]
-    for _ in range(3):
-        noisy_track(tracks[0], rng, *levels[0])
-    for _ in range(2):
-        noisy_track(tracks[0], rng, *levels[1])
-    tr = tracks[0]
-    assert tr.name == 't_peg_slot_y'
-    Tf, _, To = noisy_track(tr, rng, *levels[1])
+    tr, Tf, To, opts = _benchmark_observations(models, 't_peg_slot_y', 1, 2, noise_seed=9)
     m, f = tr.moving, tr.fixed
     assert penetration_depth(m, f, To[29], Tf, 0.002) > 4e-3
-    cor = ContactCorrector(m, f, RecognitionOptions(1.5e-3, np.deg2rad(2.0),
-                                                    noise_correlation=0.85))
-    for k in range(29):
-        cor.update(To[k], Tf)
+    cor = ContactCorrector(m, f, opts)
+    for T in To[:29]:
+        cor.update(T, Tf)
     r = cor.update(To[29], Tf)
     assert r.corrected and r.guarded, r.status
     assert penetration_depth(m, f, r.T_moving, Tf, 0.002) < 1e-6
-
-    def add(T):
-        P = m.vertices
-        T_rel = relative_pose(T, Tf)
-        return np.linalg.norm((P @ T_rel[:3, :3].T + T_rel[:3, 3])
-                              - (P @ tr.T_rel[29][:3, :3].T + tr.T_rel[29][:3, 3]), axis=1).mean()
-    assert add(To[29]) > 4e-3 and add(r.T_moving) < 1e-3
+    assert _vertex_add(m, relative_pose(To[29], Tf), tr.T_rel[29]) > 4e-3
+    assert _vertex_add(m, relative_pose(r.T_moving, Tf), tr.T_rel[29]) < 1e-3
 
 
 def test_free_choice_on_a_penetrating_observation_is_pushed_out_minimally(models):
