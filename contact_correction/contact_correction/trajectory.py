@@ -47,6 +47,9 @@ MAX_FALLBACKS = 3
 #: [m] largest accepted change along a direction the enforced relation leaves free
 FREE_TOLERANCE = 1e-7
 
+#: [m] faces this close to a vertex's nearest exit count as its exits (push-outs)
+EXIT_MARGIN = 1e-4
+
 #: [m] probe step into a face-face contact at the corrected pose: a real contact penetrates
 #: (depth about the step), one whose faces meet only along a boundary does not
 CONTACT_PROBE = 1e-4
@@ -207,8 +210,8 @@ def push_out_inequalities(moving: Polyhedron, fixed: Polyhedron, T_moving: np.nd
                           scales: Tuple[float, float] = (1e-3, np.deg2rad(1.0)),
                           spacing: float = 0.005, tolerance: float = 1e-6,
                           rounds: int = 4, max_translation: float = 0.02,
-                          max_rotation: float = 0.35, pivot: Optional[np.ndarray] = None
-                          ) -> Optional[CorrectionResult]:
+                          max_rotation: float = 0.35, pivot: Optional[np.ndarray] = None,
+                          exits_only: bool = False) -> Optional[CorrectionResult]:
     """
     Nearest pose without penetration, non-penetration as inequalities (the last resort).
 
@@ -224,6 +227,10 @@ def push_out_inequalities(moving: Polyhedron, fixed: Polyhedron, T_moving: np.nd
     :param scales: the stated pose noise (translation [m], rotation [rad]): the metric.
     :param pivot: (3,) the point of the moving object [m, moving model frame] the change turns
         about (the correction's reference point); None: the moving origin.
+    :param exits_only: of the vertex pairs found penetrating at a round's result, add only
+        those whose face is the vertex's way out (when there are any): a T-peg's stem pushed
+        off one wall of its zero-clearance slot into the other had pairs with faces it is not
+        behind added, and the next round's constraints were incompatible.
     :param max_translation: largest accepted change of the moving origin [m], as
         ``correct_pose``'s: a pose farther from the observation is not a correction of it (a
         T-peg pulled up out of its slot and pressed into a wall by the noise was pushed 23 mm
@@ -278,10 +285,14 @@ def push_out_inequalities(moving: Polyhedron, fixed: Polyhedron, T_moving: np.nd
         found = detect_contact_relation(moving, fixed, T_fixed @ T, T_fixed, tolerance=0.0,
                                         penetration_tolerance=max(pen, 1e-3))
         d = evaluate_contacts(moving, fixed, T, found).distances if found else np.zeros(0)
-        new = [p for p, dist in zip(found, d) if dist < -tolerance and p not in sel]
-        if not new:
+        new = np.array([dist < -tolerance and p not in sel for p, dist in zip(found, d)],
+                       dtype=bool)
+        if exits_only and new.any():
+            exits = _really_penetrating(moving, fixed, T, found, new, EXIT_MARGIN)
+            new = exits if exits.any() else new
+        if not new.any():
             return None
-        sel += new
+        sel += [p for p, k in zip(found, new) if k]
     return None
 
 
@@ -332,7 +343,6 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
     if check:
         kwargs['penetration_before'] = pen      # every attempt starts from the observation
     tol = max(kwargs.get('residual_tolerance', 1e-9), 1e-6)
-    margin_exit = 1e-4     # [m] faces this close to the nearest exit of a vertex count as exits
     # the point push-outs turn about: the correction's reference point, else the moving origin
     pivot = np.zeros(3) if kwargs.get('reference_point') is None \
         else np.asarray(kwargs['reference_point'], dtype=float).reshape(3)
@@ -379,7 +389,7 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
                     new &= guard
             elif T_try is not T_moving:     # the guard is the observation's
                 real = _really_penetrating(moving, fixed, T_rel, pool, new & ~sel,
-                                           margin_exit)
+                                           EXIT_MARGIN)
                 if np.any(real):
                     new = real | (new & sel)
                 elif np.isfinite(left):
@@ -389,7 +399,7 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
                     # pushed off a wall with 0.18 mm left along its edges, had its bottom
                     # vertices (2.5-4.3 mm below the top face's plane) pushed up through the
                     # top face: 2.7 mm along the direction the walls leave free
-                    shallow = new & ~sel & (g.distances >= -(left + margin_exit))
+                    shallow = new & ~sel & (g.distances >= -(left + EXIT_MARGIN))
                     if np.any(shallow):
                         new = shallow | (new & sel)
             if not np.any(new & ~sel):
@@ -640,18 +650,26 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
         if unguarded:
             real = [p for p, d in zip(frame.pool, at_obs) if d < -tol]
         scales = noise or guard_limits or (1e-3, np.deg2rad(1.0))
-        r = push_out_inequalities(moving, fixed, T_moving, T_fixed, real, scales, spacing, tol,
-                                  max_translation=kwargs.get('max_translation', 0.02),
-                                  max_rotation=kwargs.get('max_rotation', 0.35), pivot=pivot)
-        if r is not None:
+        # then again adding only pairs whose face is the vertex's way out (a T-peg's stem
+        # pushed off one wall into the other: incompatible constraints), kept only within the
+        # guard; a first search's result beyond the guard (from guarded pairs) is kept for the
+        # smallest-over-the-guard rule below
+        for exits_only in (False, True):
+            r = push_out_inequalities(
+                moving, fixed, T_moving, T_fixed, real, scales, spacing, tol,
+                max_translation=kwargs.get('max_translation', 0.02),
+                max_rotation=kwargs.get('max_rotation', 0.35), pivot=pivot,
+                exits_only=exits_only)
+            if r is None:
+                continue
             r.penetration_before = pen
             r.relation_source = 'recognised, push-out'
             guarded(r, 'no recognised relation could be enforced; only the penetration '
                        f'removed ({size(r)})')
             if not over(r):
                 return r
-            if not unguarded:       # (from every penetrating pair: a 17.7 mm push-out seen)
-                oversize.append(r)          # flagged as over the limits below
+            if not unguarded and not exits_only:    # (the others: 17.7 / 18.8 mm seen)
+                oversize.append(r)
     if oversize:
         # every non-penetrating correction found is beyond the guard: the smallest (stated
         # noise units), flagged, rather than penetration passed through
