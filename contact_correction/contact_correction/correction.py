@@ -26,7 +26,7 @@ from .contact_relation import (
 from .nonlinear_correction import correct_nonlinear, RESIDUAL_TOLERANCE
 from .optimal_correction import (
     constraint_directions, constraint_matrix, ConstraintDirections, correct_optimal,
-    optimal_translation, scaled_singular_values)
+    optimal_translation, reference_translation, scaled_singular_values)
 from .polyhedron import Polyhedron
 
 __all__ = ['CorrectionResult', 'correct_pose']
@@ -254,11 +254,10 @@ def correct_pose(moving: Polyhedron, fixed: Polyhedron, T_moving: np.ndarray,
         # of its slot, a peg pulled out of a hole: 0.2-0.7 mm on the tracks benchmark); with
         # its orientation kept the relation is linear in the translation, and the solution
         # nearest the observation (Eq. 2's translation rule) keeps every free component
-        target = T_rel_E[:3, 3]
-        if nonlinear_pivot is not None:     # the pivot's free coordinates kept, not the origin's
-            target = T_rel_E[:3, :3] @ pivot + target - T_rel[:3, :3] @ pivot
-        t, res, _ = optimal_translation(moving, fixed, T_rel[:3, :3], target, pairs,
-                                        free_directions=False)
+        # (with a pivot, the pivot's free coordinates are kept, not the origin's)
+        t, res, _ = optimal_translation(moving, fixed, T_rel[:3, :3],
+                                        reference_translation(T_rel_E, T_rel[:3, :3], pivot),
+                                        pairs, free_directions=False)
         if res > residual_tolerance:
             return T_rel
         out = T_rel.copy()

@@ -25,7 +25,7 @@ from __future__ import annotations
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from stereo_manip_tools.transforms import rotation_about_axis, rotation_log
+from stereo_manip_tools.transforms import rotation_log
 
 from .contact_relation import (
     ContactGeometry, ContactPair, detect_contact_relation, evaluate_contacts, FACE,
@@ -243,16 +243,10 @@ def push_out_inequalities(moving: Polyhedron, fixed: Polyhedron, T_moving: np.nd
     T_o = relative_pose(T_moving, T_fixed)
     sel = list(pairs)
 
-    c = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=float).reshape(3)
-    c_o = T_o[:3, :3] @ c + T_o[:3, 3]
+    c_o = held_point(T_o, pivot)        # the pivot at the observation (fixed frame)
 
     def pose(x: np.ndarray) -> np.ndarray:
-        T = T_o.copy()
-        w = x[:3] * scales[1]
-        if np.linalg.norm(w) > 0:
-            T[:3, :3] = rotation_about_axis(w, float(np.linalg.norm(w))) @ T[:3, :3]
-        T[:3, 3] = c_o + x[3:] * scales[0] - T[:3, :3] @ c
-        return T
+        return apply_screw(T_o, x[:3] * scales[1], x[3:] * scales[0], centre=c_o)
 
     for _ in range(rounds):
         if not sel:
@@ -785,7 +779,8 @@ def guard_limits(options: RecognitionOptions) -> Optional[Tuple[float, float]]:
     k = float(options.max_correction_sigma)
     if k <= 0:
         return None
-    return k * float(options.sigma_translation), k * float(options.sigma_rotation)
+    sigma_t, sigma_r = stated_noise(options)
+    return k * sigma_t, k * sigma_r
 
 
 def stated_noise(options: RecognitionOptions) -> Tuple[float, float]:
