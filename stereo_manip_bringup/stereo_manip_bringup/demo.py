@@ -17,10 +17,13 @@ TrackStatus flagged them, frames beyond :data:`WRONG_POSE_M`), plus:
    frame (invariant to the boxes' symmetries).
 3. ``primitives``: ... -> object_localizer_node (cube, torus) -> one ip_modeler_node per object
    on its segmented cloud. Selected degree, RMS distance of the points to the zero set.
-4. ``peg_in_hole_live``: the peg_in_hole graph with the camera free-running at 10 Hz: frames
+4. ``peg_in_slot``: the peg_in_hole graph on the ``peg_in_slot`` scene (the peg lowered into
+   slot_block's zero-clearance slot, then slid along it on the slot's floor; slot_block
+   static): the same scores against slot_block, per phase (approach, in_slot, on_slot_floor).
+5. ``peg_in_hole_live``: the peg_in_hole graph with the camera free-running at 10 Hz: frames
    the graph cannot keep up with are lost (and counted); rate and latency of every topic.
 
-Stages 1-3 trigger the camera frame by frame (every frame crosses the whole graph). Writes
+Stages 1-4 trigger the camera frame by frame (every frame crosses the whole graph). Writes
 ``<out>/report.json``, ``<out>/report.md``, one figure per stage and every node's log; exits
 non-zero if a stage produced no result or published a wrong pose that was not flagged. Usage::
 
@@ -313,32 +316,44 @@ def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
     }
 
 
-def _peg_phases() -> Tuple[np.ndarray, List[str]]:
+#: The contact-correction scenes: the fixed object the peg is corrected against, and the
+#: contact phases in the order the scene plays them (:func:`_peg_phases`).
+CONTACT_SCENES: Dict[str, Tuple[str, Tuple[str, ...]]] = {
+    # approach (no contact yet), sliding (on the block's top face, over the hole), inserting
+    # (going down the hole), inserted (at the bottom)
+    'peg_in_hole': ('hole_block', ('approach', 'sliding', 'inserting', 'inserted')),
+    # approach, in_slot (lowered between the slot's zero-clearance walls), on_slot_floor
+    # (walls and floor: slid along the slot)
+    'peg_in_slot': ('slot_block', ('approach', 'in_slot', 'on_slot_floor')),
+}
+
+
+def _peg_phases(scene: str = 'peg_in_hole') -> Tuple[np.ndarray, List[str]]:
     """
     Relative peg poses (block frame) and phase names of the scene frames.
 
-    Relative peg poses (block frame) of every scene frame and its phase name, from the
-    scene's truth: approach (no contact yet), sliding (on the block's top face, over the hole),
-    inserting (going down the hole), inserted (at the bottom).
+    Relative peg poses (fixed object's frame) of every frame of ``scene`` (a key of
+    :data:`CONTACT_SCENES`) and its phase name (one of the scene's phases there), from the
+    scene's truth.
     """
     from stereo_depth.synthetic import make_scene
-    scene = make_scene('peg_in_hole')
+    sc = make_scene(scene)
     rel, names = [], []
-    for k in range(scene.n_frames):
-        ex = scene.extras(k)
+    for k in range(sc.n_frames):
+        ex = sc.extras(k)
         T = ex['T_block_peg']
-        if ex['contact_phase'] == 'none':
+        contact = ex['contact_phase']
+        if contact == 'none':
             phase = 'approach'
-        elif ex['contact_phase'] != 'inserted':
+        elif scene == 'peg_in_slot':
+            phase = 'in_slot' if contact == 'in_slot' else 'on_slot_floor'
+        elif contact != 'inserted':
             phase = 'sliding'
         else:
             phase = 'inserted' if T[2, 3] <= -0.06 + 1e-6 else 'inserting'
         rel.append(T)
         names.append(phase)
     return np.array(rel), names
-
-
-PEG_PHASES = ('approach', 'sliding', 'inserting', 'inserted')
 
 
 def _phase_of(rel_true: np.ndarray, table: Tuple[np.ndarray, List[str]]) -> str:
@@ -351,14 +366,27 @@ def _phase_of(rel_true: np.ndarray, table: Tuple[np.ndarray, List[str]]) -> str:
 
 def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
                       window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
+    """:func:`score_peg_contact` of the ``peg_in_hole`` scene (the peg and hole_block)."""
+    return score_peg_contact(data, stage, window, scene='peg_in_hole')
+
+
+def score_peg_in_slot(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
+                      window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
+    """:func:`score_peg_contact` of the ``peg_in_slot`` scene (the peg and slot_block)."""
+    return score_peg_contact(data, stage, window, scene='peg_in_slot')
+
+
+def score_peg_contact(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
+                      window: Optional[Tuple[int, int]] = None,
+                      scene: str = 'peg_in_hole') -> Dict[str, Any]:
     """
     Score every object's published poses against truth.
 
     Every object's published poses against truth (lost / flagged / wrong frames counted),
     and the peg's ADD-sym before and after contact correction, in the camera frame and relative
-    to the localised hole block, per contact phase: ``corrected`` is the node's online output
-    (``corrected_pose``), ``smoothed`` its fixed-lag one (``corrected_pose_smoothed``,
-    ``smoothing_lag`` frames late).
+    to the localised fixed object of ``scene`` (:data:`CONTACT_SCENES`), per contact phase:
+    ``corrected`` is the node's online output (``corrected_pose``), ``smoothed`` its fixed-lag
+    one (``corrected_pose_smoothed``, ``smoothing_lag`` frames late).
     """
     from stereo_manip_tools.transforms import invert_transform
     out: Dict[str, Any] = {'poses': {n: score_object_poses(data, n, window)
@@ -372,11 +400,12 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
     observed = _by_stamp(data['/objects/peg/pose'])
     corrected = _by_stamp(data['/objects/peg/pose_corrected'])
     smoothed = _by_stamp(data.get('/objects/peg/pose_corrected_smoothed', []))
-    block_truth = _by_stamp(data['/objects/hole_block/pose_truth'])
-    block = _by_stamp(data['/objects/hole_block/pose'])
+    fixed, phase_names = CONTACT_SCENES[scene]
+    block_truth = _by_stamp(data[f'/objects/{fixed}/pose_truth'])
+    block = _by_stamp(data[f'/objects/{fixed}/pose'])
     states = _by_stamp(data['/contact_state'])
     error = _symmetric_error('peg')
-    table = _peg_phases()
+    table = _peg_phases(scene)
     rows = []
     for stamp in sorted(set(truth) & set(block_truth)):
         if window is not None and not window[0] <= stamp <= window[1]:
@@ -384,13 +413,14 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
         rel_true = invert_transform(_pose(block_truth[stamp])) @ _pose(truth[stamp])
         row: Dict[str, Any] = {'stamp_ns': stamp, 'phase': _phase_of(rel_true, table)}
         # the frame's poses (4x4 lists): the truth of the peg in the block's frame, and the
-        # localised peg and block and the corrected (online and fixed-lag) peg in the camera's
-        # optical frame, so a frame can be replayed through the contact correction offline
+        # localised peg and block (keyed by the fixed object's name) and the corrected (online
+        # and fixed-lag) peg in the camera's optical frame, so a frame can be replayed through
+        # the contact correction offline
         poses = row['poses'] = {'peg_in_block_truth': rel_true.tolist()}
         if stamp in observed and stamp in block:
             to_block = invert_transform(_pose(block[stamp]))
-            poses.update(peg=_pose(observed[stamp]).tolist(),
-                         hole_block=_pose(block[stamp]).tolist())
+            poses.update({'peg': _pose(observed[stamp]).tolist(),
+                          fixed: _pose(block[stamp]).tolist()})
             row['relative_add_sym_observed_m'] = error(to_block @ _pose(observed[stamp]),
                                                        rel_true)
             for key, published in (('corrected', corrected), ('smoothed', smoothed)):
@@ -409,7 +439,7 @@ def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
     out['frames_scored'] = sum('relative_add_sym_corrected_m' in r for r in rows)
     out['camera_frames'] = len(rows)
     phases = {}
-    for phase in PEG_PHASES:
+    for phase in phase_names:
         sel = [r for r in rows if r['phase'] == phase]
         phases[phase] = {
             'frames': len(sel),
@@ -542,31 +572,42 @@ PEG_POSE_NOISE = {'sigma_translation': 0.0005, 'sigma_rotation': float(np.deg2ra
 PEG_REFERENCE_POINT = 'centroid'
 
 
-def _peg_in_hole_stage(name: str = 'peg_in_hole', live_seconds: float = 0.0) -> Stage:
-    objects = ('peg', 'hole_block')
+def _peg_contact_stage(name: str, scene: str = 'peg_in_hole',
+                       live_seconds: float = 0.0) -> Stage:
+    """
+    Build the contact-correction graph of ``scene`` (a key of :data:`CONTACT_SCENES`).
+
+    camera -> stereo -> localiser (the peg, and the fixed object static) -> contact
+    correction of the peg against the fixed object; one loop of the scene at every 3rd frame
+    (triggered), or ``live_seconds`` of the camera free-running.
+    """
+    from stereo_depth.synthetic import make_scene
+    fixed = CONTACT_SCENES[scene][0]
+    objects = ('peg', fixed)
     return Stage(
         name,
-        [_camera('peg_in_hole', 3), _stereo('peg_in_hole'),
-         _localizer('peg_in_hole', list(objects), static=('hole_block',)),
+        [_camera(scene, 3), _stereo(scene),
+         _localizer(scene, list(objects), static=(fixed,)),
          NodeSpec('contact_correction', 'contact_correction_node', 'contact_correction',
-                  {'moving_object': 'peg', 'fixed_object': 'hole_block', **PEG_POSE_NOISE,
+                  {'moving_object': 'peg', 'fixed_object': fixed, **PEG_POSE_NOISE,
                    'reference_point': PEG_REFERENCE_POINT},
-                  {'moving_pose': '/objects/peg/pose', 'fixed_pose': '/objects/hole_block/pose',
+                  {'moving_pose': '/objects/peg/pose', 'fixed_pose': f'/objects/{fixed}/pose',
                    'corrected_pose': '/objects/peg/pose_corrected',
                    'corrected_pose_smoothed': '/objects/peg/pose_corrected_smoothed'})],
         {**_object_topics(objects),
          '/objects/peg/pose_corrected': 'geometry_msgs/msg/PoseStamped',
          '/objects/peg/pose_corrected_smoothed': 'geometry_msgs/msg/PoseStamped',
          '/contact_state': 'stereo_manip_msgs/msg/ContactState'},
-        score_peg_in_hole,
-        'contact correction of a localised peg (Section 3)' + (
+        score_peg_in_slot if scene == 'peg_in_slot' else score_peg_in_hole,
+        f'contact correction of a localised peg against {fixed} (Section 3)' + (
             f', camera free-running at 10 Hz for {live_seconds:.0f} s' if live_seconds else ''),
-        frames=75, stamp_topic='/objects/peg/pose_truth', done_topics=('/contact_state',),
-        objects=objects, live_seconds=live_seconds, budget_s=75.0)
+        frames=make_scene(scene).n_frames // 3, stamp_topic='/objects/peg/pose_truth',
+        done_topics=('/contact_state',), objects=objects, live_seconds=live_seconds,
+        budget_s=75.0)
 
 
 STAGES: Dict[str, Callable[[], Stage]] = {
-    'peg_in_hole': _peg_in_hole_stage,
+    'peg_in_hole': lambda: _peg_contact_stage('peg_in_hole'),
     'revolute_pair': lambda: Stage(
         'revolute_pair',
         [_camera('revolute_pair', 3), _stereo('revolute_pair'),
@@ -600,7 +641,8 @@ STAGES: Dict[str, Callable[[], Stage]] = {
         done_topics=('/objects/cube/implicit_polynomial',
                      '/objects/torus/implicit_polynomial'), objects=('cube', 'torus'),
         budget_s=40.0),
-    'peg_in_hole_live': lambda: _peg_in_hole_stage('peg_in_hole_live', live_seconds=15.0),
+    'peg_in_slot': lambda: _peg_contact_stage('peg_in_slot', 'peg_in_slot'),
+    'peg_in_hole_live': lambda: _peg_contact_stage('peg_in_hole_live', live_seconds=15.0),
 }
 
 
@@ -836,15 +878,17 @@ def _figure(stage: str, result: Dict[str, Any], path: Path) -> Optional[Path]:
         if missing.any():
             ax2.plot(t[missing], np.zeros(missing.sum()), 'rv', ms=6,
                      label='no corrected pose')
-        shade = {'approach': '#ffffff', 'sliding': '#e8f0ff', 'inserting': '#fff0d8',
-                 'inserted': '#e8ffe8'}
+        shade = {'approach': ('#ffffff', 'white'), 'sliding': ('#e8f0ff', 'blue'),
+                 'inserting': ('#fff0d8', 'orange'), 'inserted': ('#e8ffe8', 'green'),
+                 'in_slot': ('#fff0d8', 'orange'), 'on_slot_floor': ('#e8ffe8', 'green')}
         for k, r in enumerate(rows):
             lo = t[k] - (t[k] - t[k - 1]) / 2 if k else t[k]
             hi = t[k] + (t[k + 1] - t[k]) / 2 if k + 1 < len(rows) else t[k]
-            ax2.axvspan(lo, hi, color=shade[r['phase']], lw=0, zorder=0)
+            ax2.axvspan(lo, hi, color=shade[r['phase']][0], lw=0, zorder=0)
         ax2.set_ylabel('peg ADD-sym relative to block [mm]')
-        ax2.set_title("peg in the hole block's frame; shading: approach (white), sliding "
-                      '(blue), inserting (orange), inserted (green)', fontsize=8)
+        phases = dict.fromkeys(r['phase'] for r in rows)
+        ax2.set_title("peg in the block's frame; shading: " + ', '.join(
+            f'{p} ({shade[p][1]})' for p in phases), fontsize=8)
         ax2.legend(fontsize=7)
         ax2.set_xlabel('time [s]')
     elif stage == 'revolute_pair' and result.get('history'):
@@ -890,7 +934,7 @@ def _pose_table(poses: Dict[str, Any]) -> List[str]:
 
 def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
     lines: List[str] = []
-    if name.startswith('peg_in_hole'):
+    if 'phases' in result:
         lines.append(f"frames: {result['camera_frames']} from the camera, "
                      f"{result['frames_scored']} with a corrected pose, "
                      f"{result['frames_corrected']} contact-corrected")
@@ -931,7 +975,7 @@ def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
 
 
 def _stage_ok(name: str, result: Dict[str, Any]) -> bool:
-    if name.startswith('peg_in_hole'):
+    if name.startswith('peg_in'):
         return result.get('frames_scored', 0) > 0
     if name == 'revolute_pair':
         return 'final_type' in result

@@ -75,12 +75,45 @@ def test_object_poses_are_scored_and_unflagged_wrong_poses_counted():
     assert demo.score_object_poses(data, 'peg')['wrong_unflagged'] == 2
 
 
-def test_peg_phases_cover_the_insertion_in_order():
-    rel, names = demo._peg_phases()
+@pytest.mark.parametrize('scene', list(demo.CONTACT_SCENES))
+def test_peg_phases_cover_the_insertion_in_order(scene):
+    rel, names = demo._peg_phases(scene)
     order = [p for k, p in enumerate(names) if k == 0 or names[k - 1] != p]
-    assert order == list(demo.PEG_PHASES)
+    phases = demo.CONTACT_SCENES[scene][1]
+    assert order == list(phases)
     assert demo._phase_of(rel[0], (rel, names)) == 'approach'
-    assert demo._phase_of(rel[-1], (rel, names)) == 'inserted'
+    assert demo._phase_of(rel[-1], (rel, names)) == phases[-1]
+    # each contact scene has its stage, scored against its fixed object
+    stage = demo.STAGES[scene]()
+    assert stage.objects == ('peg', demo.CONTACT_SCENES[scene][0])
+    assert f'/objects/{stage.objects[1]}/pose_truth' in stage.topics
+
+
+def test_peg_in_slot_scored_relative_to_the_slot_block_per_phase():
+    """The slot stage's scorer: the peg relative to slot_block, per slot phase, from the truth."""
+    from stereo_depth.synthetic import make_scene
+    from stereo_manip_tools.transforms import make_transform
+    scene = make_scene('peg_in_slot')
+    lift = make_transform(np.eye(3), [0.0, 0.0, 0.0005])     # the localised peg 0.5 mm up
+    frames = [0, 40, 100]                                    # approach, in_slot, on the floor
+    data = {t: [] for t in demo.STAGES['peg_in_slot']().topics}
+    for k in frames:
+        P = scene.poses(k)
+        stamp = 1000 + k
+        data['/objects/peg/pose_truth'].append((stamp, _pose_msg(stamp, P['peg'])))
+        data['/objects/slot_block/pose_truth'].append((stamp, _pose_msg(stamp, P['slot_block'])))
+        data['/objects/slot_block/pose'].append((stamp, _pose_msg(stamp, P['slot_block'])))
+        data['/objects/peg/pose'].append((stamp, _pose_msg(stamp, P['peg'] @ lift)))
+        data['/objects/peg/pose_corrected'].append((stamp, _pose_msg(stamp, P['peg'])))
+    r = demo.score_peg_in_slot(data, demo.STAGES['peg_in_slot']())
+    assert [f['phase'] for f in r['frames']] == ['approach', 'in_slot', 'on_slot_floor']
+    assert list(r['phases']) == ['approach', 'in_slot', 'on_slot_floor']
+    for f in r['frames']:
+        assert f['relative_add_sym_observed_m'] == pytest.approx(0.0005, rel=1e-6)
+        assert f['relative_add_sym_corrected_m'] == pytest.approx(0.0, abs=1e-9)
+        assert set(f['poses']) == {'peg_in_block_truth', 'peg', 'slot_block', 'peg_corrected'}
+    assert r['phases']['on_slot_floor']['relative_add_sym_observed_mm']['median'] == \
+        pytest.approx(0.5, rel=1e-6)
 
 
 def test_live_figures_count_missing_frames_and_latency():
