@@ -292,6 +292,41 @@ def test_free_choice_with_no_guarded_pair_still_pushes_out(models):
     assert np.abs(rel[1:3, 3] - rel_obs[1:3, 3]).max() < 1e-6   # along the slot and up: kept
 
 
+def test_push_out_takes_each_vertex_through_its_nearest_face_only(models):
+    """
+    The shipped peg 1 mm into slot_block's zero-clearance slot, observed 0.58 mm into a wall.
+
+    As the demo's ``peg_in_slot`` stage saw it (scene seed 3, the first frame between the
+    walls, the relation still free; the demo's stated noise 0.5 mm / 0.5 deg). One bottom
+    corner is 0.70 mm behind the wall and 0.93 mm below the block's top face: both faces pass
+    the guard's nearest-exit test (its slack is 0.25 mm here). Brought to contact with both,
+    the corner was put on their edge: the peg lifted 0.88 mm, out of the slot, ADD-sym 0.43
+    -> 0.91 mm. Through its nearest face only (the wall), the peg is pushed back between the
+    walls and keeps its depth.
+    """
+    peg, block = models['peg'], models['slot_block']
+    truth = make_transform(np.eye(3), [0.04737, 0.0, -0.001])
+    turn = np.radians([0.175, 0.004, -0.351])          # the observed turn (rotation vector)
+    R = rotation_about_axis(turn / np.linalg.norm(turn), np.linalg.norm(turn))
+    T = make_transform(R, truth[:3, 3] + [0.0001, 0.00058, 0.0])
+    assert penetration_depth(peg, block, T, I4, 0.002) > 5e-4
+    opts = RecognitionOptions(sigma_translation=0.0005, sigma_rotation=np.radians(0.5),
+                              noise_correlation=0.85)
+    rec = RelationRecognizer(peg, block, opts)
+    fc = rec.frame(T, I4)
+    free = Hypothesis(frozenset(), (), 0.0, 0, 0.0)
+    r = correct_recognised(peg, block, T, I4, free, fc, rec.last_guard(), rec.margin,
+                           guard_limits(opts), stated_noise(opts),
+                           reference_point=peg.centroid)
+    assert r.corrected and 'push-out' in r.status, r.status
+    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-6
+    centroid = lambda T_: T_[:3, :3] @ peg.centroid + T_[:3, 3]     # noqa: E731
+    # its depth in the slot kept (was lifted 0.88 mm), pushed back between the walls
+    assert abs(centroid(r.T_moving)[2] - centroid(T)[2]) < 5e-5
+    assert abs(r.T_moving[1, 3]) < abs(T[1, 3]) - 4e-4
+    assert _vertex_add(peg, r.T_moving, truth) < 0.5 * _vertex_add(peg, T, truth)
+
+
 def _vertex_add(m, T_rel_a, T_rel_b):
     """Mean distance [m] between the model's vertices at two relative poses."""
     P = m.vertices
