@@ -327,6 +327,38 @@ def test_push_out_takes_each_vertex_through_its_nearest_face_only(models):
     assert _vertex_add(peg, r.T_moving, truth) < 0.5 * _vertex_add(peg, T, truth)
 
 
+def test_push_out_after_a_failed_relation_does_not_enforce_it(models):
+    """
+    The shipped peg 1.32 mm into hole_block's zero-clearance hole, held on one wall.
+
+    As the demo's ``peg_in_hole`` stage saw it (scene seed 3, the first frame of the
+    insertion; the demo's stated noise): the temporal model still chose the contact of one of
+    the peg's sides with a wall of the hole, whose correction left 30 um of penetration. The
+    push-out then brought that wall contact to contact again together with the penetrating
+    pairs, and lifted the peg 1.32 mm back onto the top face (ADD-sym 0.27 -> 1.33 mm). A
+    relation that could not be enforced is not enforced by its push-out either: only the
+    penetration is removed, the peg keeps its depth.
+    """
+    peg, block = models['peg'], models['hole_block']
+    turn = np.array([-0.00108984, -0.00315571, -0.00794841])       # rotation vector [rad]
+    T = make_transform(rotation_about_axis(turn / np.linalg.norm(turn), np.linalg.norm(turn)),
+                       [2.9359e-05, 4.871e-05, -1.32069e-03])
+    assert penetration_depth(peg, block, T, I4, 0.002) > 2e-4
+    opts = RecognitionOptions(sigma_translation=0.0005, sigma_rotation=np.radians(0.5),
+                              noise_correlation=0.85)
+    rec = RelationRecognizer(peg, block, opts)
+    fc = rec.frame(T, I4)
+    wall = fc.hypotheses[frozenset({('ff', 4, 7)})]   # the peg's +y side on the hole's wall
+    r = correct_recognised(peg, block, T, I4, wall, fc, rec.last_guard(), rec.margin,
+                           guard_limits(opts), stated_noise(opts),
+                           reference_point=peg.centroid)
+    assert r.corrected and 'could not be enforced' in r.status, r.status
+    assert penetration_depth(peg, block, r.T_moving, I4, 0.002) < 1e-6
+    assert abs(r.T_moving[2, 3] - T[2, 3]) < 5e-5            # its depth kept (was lifted)
+    truth = make_transform(np.eye(3), [0.0, 0.0, -0.00133])
+    assert _vertex_add(peg, r.T_moving, truth) < _vertex_add(peg, T, truth)
+
+
 def _vertex_add(m, T_rel_a, T_rel_b):
     """Mean distance [m] between the model's vertices at two relative poses."""
     P = m.vertices
