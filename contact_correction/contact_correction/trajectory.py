@@ -402,6 +402,11 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
                     shallow = new & ~sel & (g.distances >= -(left + EXIT_MARGIN))
                     if np.any(shallow):
                         new = shallow | (new & sel)
+                    elif left <= tol:
+                        # nothing penetrates there: pairs behind their planes only, none to
+                        # push (the peg 1.3 mm into the hole, its corners brought to the walls,
+                        # was lifted by its bottom corners onto the top face: 0.13 -> 1.33 mm)
+                        new = new & sel
             if not np.any(new & ~sel):
                 break
             added = new & ~sel
@@ -427,7 +432,12 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
             if r.T_nonlinear is None:
                 break
             T_try = r.T_nonlinear
-            left = r.penetration_after
+            # a degenerate attempt has no penetration measured: measured here, or the rule
+            # for penetration along edges below was skipped and every pair behind its plane
+            # added (the peg 1.3 mm into the hole, its corners brought to the walls, was
+            # lifted onto the top face: ADD-sym 0.13 -> 1.33 mm)
+            left = r.penetration_after if np.isfinite(r.penetration_after) else \
+                penetration_depth(moving, fixed, T_try, T_fixed, spacing)
         return None
 
     def over(r: CorrectionResult) -> bool:
