@@ -374,25 +374,24 @@ def _correct_recognised_paths(moving: Polyhedron, fixed: Polyhedron, T_moving: n
             g = evaluate_contacts(moving, fixed, T_rel, pool)
             new = g.distances < -tol
             if guard is not None and len(guard) == len(new) and T_try is T_moving:
-                if last_resort and not np.any(new & guard & ~sel) and np.any(new & ~sel):
-                    k = int(np.argmin(np.where(new & ~sel, g.distances, np.inf)))
+                # (the observation's round: no pair selected yet)
+                if last_resort and not np.any(new & guard) and np.any(new):
+                    k = int(np.argmin(np.where(new, g.distances, np.inf)))
                     face = _penetrated_face(pool[k])
                     new &= np.array([_penetrated_face(p) == face for p in pool], dtype=bool)
                 else:
-                    new &= guard
                     # each vertex through its nearest face only, as at the attempts' poses
                     # below: brought to contact with two faces the guard's slack lets through
                     # (0.25 mm at the demo's noise), a vertex is moved onto their edge (a peg
                     # 1 mm into slot_block's zero-clearance slot, a corner 0.70 mm into a wall
                     # and 0.93 mm below the top face: lifted 0.88 mm, out of the slot)
-                    new = _nearest_exit_per_vertex(pool, g.distances, new & ~sel) \
-                        | (new & sel)
+                    new = _nearest_exit_per_vertex(pool, g.distances, new & guard)
             elif T_try is not T_moving:     # the guard is the observation's
                 real = _really_penetrating(moving, fixed, T_rel, pool, new & ~sel,
                                            EXIT_MARGIN)
                 if np.any(real):
                     new = real | (new & sel)
-                elif np.isfinite(left):
+                else:
                     # penetration along edges only: the pairs behind their plane by no more
                     # than the penetration left (plus the exit margin), else every pair behind
                     # its plane, as the last resort. A peg 2.7 mm into a zero-clearance hole,

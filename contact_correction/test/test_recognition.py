@@ -28,6 +28,9 @@ from stereo_manip_tools.mesh_io import find_model, load_obj, PolygonMesh
 from stereo_manip_tools.transforms import make_transform, rotation_about_axis, rotation_log
 
 I4 = np.eye(4)
+#: the noise the demo states to its contact node (stereo_manip_bringup.demo.PEG_POSE_NOISE)
+DEMO_NOISE = {'sigma_translation': 0.0005, 'sigma_rotation': float(np.radians(0.5)),
+              'noise_correlation': 0.85}
 
 
 @pytest.fixture(scope='module')
@@ -310,8 +313,7 @@ def test_push_out_takes_each_vertex_through_its_nearest_face_only(models):
     R = rotation_about_axis(turn / np.linalg.norm(turn), np.linalg.norm(turn))
     T = make_transform(R, truth[:3, 3] + [0.0001, 0.00058, 0.0])
     assert penetration_depth(peg, block, T, I4, 0.002) > 5e-4
-    opts = RecognitionOptions(sigma_translation=0.0005, sigma_rotation=np.radians(0.5),
-                              noise_correlation=0.85)
+    opts = RecognitionOptions(**DEMO_NOISE)
     rec = RelationRecognizer(peg, block, opts)
     fc = rec.frame(T, I4)
     free = Hypothesis(frozenset(), (), 0.0, 0, 0.0)
@@ -352,8 +354,7 @@ def test_push_out_after_a_failed_relation_does_not_lift_the_peg_out(models, turn
     T = make_transform(rotation_about_axis(turn / np.linalg.norm(turn), np.linalg.norm(turn)),
                        shift)
     assert penetration_depth(peg, block, T, I4, 0.002) > 1e-4
-    opts = RecognitionOptions(sigma_translation=0.0005, sigma_rotation=np.radians(0.5),
-                              noise_correlation=0.85)
+    opts = RecognitionOptions(**DEMO_NOISE)
     rec = RelationRecognizer(peg, block, opts)
     fc = rec.frame(T, I4)
     chosen = fc.hypotheses[frozenset({('ff',) + wall})]     # a side of the peg on a wall

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, field
+import functools
 import json
 import os
 from pathlib import Path
@@ -364,18 +365,6 @@ def _phase_of(rel_true: np.ndarray, table: Tuple[np.ndarray, List[str]]) -> str:
     return names[int(np.argmin(d))]
 
 
-def score_peg_in_hole(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
-                      window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
-    """:func:`score_peg_contact` of the ``peg_in_hole`` scene (the peg and hole_block)."""
-    return score_peg_contact(data, stage, window, scene='peg_in_hole')
-
-
-def score_peg_in_slot(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
-                      window: Optional[Tuple[int, int]] = None) -> Dict[str, Any]:
-    """:func:`score_peg_contact` of the ``peg_in_slot`` scene (the peg and slot_block)."""
-    return score_peg_contact(data, stage, window, scene='peg_in_slot')
-
-
 def score_peg_contact(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
                       window: Optional[Tuple[int, int]] = None,
                       scene: str = 'peg_in_hole') -> Dict[str, Any]:
@@ -598,7 +587,7 @@ def _peg_contact_stage(name: str, scene: str = 'peg_in_hole',
          '/objects/peg/pose_corrected': 'geometry_msgs/msg/PoseStamped',
          '/objects/peg/pose_corrected_smoothed': 'geometry_msgs/msg/PoseStamped',
          '/contact_state': 'stereo_manip_msgs/msg/ContactState'},
-        score_peg_in_slot if scene == 'peg_in_slot' else score_peg_in_hole,
+        functools.partial(score_peg_contact, scene=scene),
         f'contact correction of a localised peg against {fixed} (Section 3)' + (
             f', camera free-running at 10 Hz for {live_seconds:.0f} s' if live_seconds else ''),
         frames=make_scene(scene).n_frames // 3, stamp_topic='/objects/peg/pose_truth',
@@ -975,7 +964,7 @@ def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
 
 
 def _stage_ok(name: str, result: Dict[str, Any]) -> bool:
-    if name.startswith('peg_in'):
+    if 'phases' in result:
         return result.get('frames_scored', 0) > 0
     if name == 'revolute_pair':
         return 'final_type' in result

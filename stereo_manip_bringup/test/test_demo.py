@@ -105,7 +105,7 @@ def test_peg_in_slot_scored_relative_to_the_slot_block_per_phase():
         data['/objects/slot_block/pose'].append((stamp, _pose_msg(stamp, P['slot_block'])))
         data['/objects/peg/pose'].append((stamp, _pose_msg(stamp, P['peg'] @ lift)))
         data['/objects/peg/pose_corrected'].append((stamp, _pose_msg(stamp, P['peg'])))
-    r = demo.score_peg_in_slot(data, demo.STAGES['peg_in_slot']())
+    r = demo.score_peg_contact(data, demo.STAGES['peg_in_slot'](), scene='peg_in_slot')
     assert [f['phase'] for f in r['frames']] == ['approach', 'in_slot', 'on_slot_floor']
     assert list(r['phases']) == ['approach', 'in_slot', 'on_slot_floor']
     for f in r['frames']:

@@ -41,7 +41,7 @@ def test_free_running_graph_keeps_rate_and_bounded_latency():
     assert status['rate_hz'] >= corrected['rate_hz'] - 0.2, live
     # no localised pose goes out wrong and unflagged, even in a short live run (the corrected
     # pose's accuracy is the demo's and the contact benchmarks' business)
-    result = demo.score_peg_in_hole(data, stage, info['window'])
+    result = stage.score(data, stage, info['window'])
     for name in ('peg', 'hole_block'):
         p = result['poses'][name]
         assert p['wrong_unflagged'] == 0, (name, p['beyond_error'], p['add_s_mm'])
