@@ -688,6 +688,33 @@ def test_flush_face_at_the_slot_entrance_is_not_an_area_contact(models):
     assert rec.supported(rec.evaluate(frozenset({front})))
 
 
+def test_search_reaches_the_area_contact_nested_in_a_boundary_only_best(models):
+    """
+    The shipped peg slid 0.85 mm off hole_block's hole mouth onto the top face.
+
+    As the demo's free-running stage saw it (recorded, the block's frame; the demo's stated
+    noise): the peg had just come up out of its zero-clearance hole. The relation scoring best
+    is every group (its bottom on the top face and its sides against the walls it left), whose
+    faces meet only along the hole's rim; the climbs from the walls the temporal model still
+    holds keep walls. The bottom face alone on the top face (the truth), an area contact, is
+    found from the best area contact nested in that best relation, and chosen: before, the
+    fixed-lag output pulled the peg back onto the hole's axis (ADD-sym 0.17 -> 0.92 mm).
+    """
+    peg, block = models['peg'], models['hole_block']
+    turn = np.array([-0.0010484, -0.0018899, 0.0008996])               # rotation vector [rad]
+    T = make_transform(rotation_about_axis(turn / np.linalg.norm(turn), np.linalg.norm(turn)),
+                       [0.0008479, 0.0002371, 6.5e-06])
+    rec = RelationRecognizer(peg, block, RecognitionOptions(**DEMO_NOISE))
+    rec.area_check = True
+    walls = [frozenset({('ff', 4, 7), ('ff', 5, 9)}), frozenset({('ff', 3, 5), ('ff', 4, 7)}),
+             frozenset({('ff', 2, 3), ('ff', 5, 9)})]
+    fc = rec.frame(T, I4, seeds=walls)
+    top = min(fc.hypotheses.values(), key=lambda h: h.score)
+    assert ('ff', 0, 0) in top.state and not rec.supported(top)
+    assert fc.best.state == frozenset({('ff', 0, 0)}), sorted(fc.best.state)
+    assert fc.best.score < min(fc.hypotheses[w].score for w in walls) - 2.0
+
+
 def test_offline_second_pass_finds_the_slot_formation_at_the_entrance(models, tracks):
     """
     Offline recognition on noisy T-peg tracks (1.5 mm / 2 deg, AR(1) rho 0.85).
