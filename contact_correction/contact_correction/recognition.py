@@ -1072,7 +1072,17 @@ class RelationTracker:
             near = [s for s, _ in ordered[1:] if self._cost[s] <= margin
                     and fc.hypotheses[s].rank < h.rank
                     and fc.hypotheses[s].chi2 < h.chi2 - AMBIGUITY_FIT]
-            common = common_state([best_state] + near) if near else frozenset()
+            common: State = frozenset()
+            if near:
+                states = [best_state] + near
+                if not keep_history and rec.options.area_contact_check:
+                    # each relation without its faces that meet only along a boundary (the
+                    # area check, as below): the groups common to relations sharing such a face
+                    # can be that face alone (a T-peg entering its slot, its back face level
+                    # with the block's front face, was corrected against that face alone and
+                    # pulled 2 mm out of the slot: contact_tracks --seed 7, ADD 2.0 -> 4.4 mm)
+                    states = [st - rec.boundary_groups(fc.hypotheses[st]) for st in states]
+                common = common_state(states)
             if common:
                 # (not when nothing is common: the observation would be passed through or,
                 # penetrating, pushed out, which may move it along the free directions)

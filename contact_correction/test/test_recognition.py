@@ -888,6 +888,32 @@ def test_online_choice_keeps_the_slot_contacts_a_flush_face_made_fail(models):
     _assert_area_check_keeps_the_position_along_the_slot(models, T)
 
 
+def test_online_safe_rule_leaves_out_a_flush_face_meeting_only_along_the_slot_outline(models):
+    """
+    The T-peg sliding into its slot, the first frames of a track, online (1 mm / 1 deg).
+
+    Drawn as ``bench/contact_tracks.py --seed 7`` draws it. At frames 1 and 2 the temporal
+    model's best relation was the in-slot walls plus the block's front face, level with the
+    peg's back face (meeting only along the slot's outline), and the nearby relations with
+    fewer constraints all had that face too: the safe rule enforced the groups common to them,
+    the front face alone, and pulled the peg 2 mm out of the slot (ADD 2.19 -> 3.30 and 2.03
+    -> 4.40 mm). Each relation is now taken without its boundary-only faces: the true relation
+    is enforced from frame 1 on.
+    """
+    tr, Tf, To, opts = _benchmark_observations(models, 't_peg_pull_up', 0, 1, noise_seed=7)
+    m, f = tr.moving, tr.fixed
+    cor = ContactCorrector(m, f, opts)
+    for k in range(4):
+        r = cor.update(To[k], Tf)
+        observed = _vertex_add(m, relative_pose(To[k], Tf), tr.T_rel[k])
+        corrected = _vertex_add(m, relative_pose(r.T_moving, Tf), tr.T_rel[k])
+        assert corrected < observed + opts.sigma_translation, (k, observed, corrected)
+        if k:
+            truth = detect_contact_relation(m, f, tr.T_rel[k], I4, tolerance=1e-7)
+            assert equivalent(m, f, tr.T_rel[k], truth, r.pairs), (k, r.status)
+            assert corrected < 0.7 * observed, (k, observed, corrected)
+
+
 def _benchmark_observations(models, name, level, seed, noise_seed=20261124):
     """
     Observed poses of ``bench/contact_tracks.py``'s run of track ``name``.
