@@ -24,6 +24,7 @@ import importlib
 import os
 from pathlib import Path
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -78,6 +79,19 @@ def key(r) -> tuple:
     return ([(p.moving_type, p.moving_index, p.fixed_type, p.fixed_index, p.sign)
              for p in r.pairs], r.status, bool(r.corrected), bool(r.guarded),
             r.relation_source, r.method)
+
+
+def git_commit(tree: Path) -> str:
+    """Return the commit checked out in ``tree`` (+ '-dirty' with changes), '' if not git."""
+    try:
+        head = subprocess.run(['git', '-C', str(tree), 'rev-parse', 'HEAD'], check=True,
+                              capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(['git', '-C', str(tree), 'status', '--porcelain', '--',
+                                'contact_correction'], check=True, capture_output=True,
+                               text=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return ''
+    return head + ('-dirty' if dirty else '')
 
 
 def run(reference: Path, quick: bool) -> None:
@@ -158,7 +172,8 @@ def run(reference: Path, quick: bool) -> None:
           f'{np.median(t_ref):.2f} / {np.percentile(t_ref, 95):.2f} / {t_ref.max():.2f}; '
           f'paired ratio median {np.median(t_new / t_ref):.3f}; load {load}')
     write_report('contact_tracks_cpu', goals, quick=quick, loadavg=load,
-                 reference=str(reference),
+                 reference=str(reference), reference_commit=git_commit(reference),
+                 this_commit=git_commit(Path(__file__).resolve().parent.parent),
                  time_online_cpu_ms=pct(t_new), time_online_cpu_ms_reference=pct(t_ref),
                  paired_ratio=pct(t_new / t_ref),
                  max_translation_difference_m=dt_max, max_rotation_difference_rad=dr_max,
