@@ -264,6 +264,25 @@ def spread(values: Sequence[float], scale: float = 1.0) -> Dict[str, float]:
             'max': float(a.max()), 'n': int(a.size)}
 
 
+def paired_change(before: Sequence[float], after: Sequence[float], noise: float,
+                  tolerance: float = 1e-6) -> Dict[str, Any]:
+    """
+    Count the frames a correction made better or worse, frame by frame.
+
+    :param before: per-frame error before [m] (e.g. the localised peg's ADD-sym).
+    :param after: the same frames' error after [m], in the same order.
+    :param noise: the stated noise [m]: frames worse by more than it are counted apart.
+    :param tolerance: changes within it [m] count as unchanged.
+    :returns: ``n``, ``better``, ``worse``, ``worse_by_more_than_noise`` and the mean change
+        [mm] (negative: lower after).
+    """
+    d = np.asarray(list(after), float) - np.asarray(list(before), float)
+    return {'n': int(d.size), 'better': int(np.count_nonzero(d < -tolerance)),
+            'worse': int(np.count_nonzero(d > tolerance)),
+            'worse_by_more_than_noise': int(np.count_nonzero(d > noise)),
+            'mean_change_mm': float(d.mean() * 1000.0) if d.size else float('nan')}
+
+
 def score_object_poses(data: Dict[str, List[Tuple[int, Any]]], name: str,
                        window: Optional[Tuple[int, int]] = None,
                        pose_topic: Optional[str] = None) -> Dict[str, Any]:
@@ -446,6 +465,15 @@ def score_peg_contact(data: Dict[str, List[Tuple[int, Any]]], stage: 'Stage',
                 [r['relative_add_sym_smoothed_m'] for r in sel
                  if 'relative_add_sym_smoothed_m' in r and 'relative_add_sym_corrected_m' in r],
                 1000.0)}
+        # frame by frame against the localised pose: a median can stay level while every
+        # frame that changed is better (the sliding errors lie along the free directions)
+        for key in ('corrected', 'smoothed'):
+            pair = [r for r in sel if f'relative_add_sym_{key}_m' in r
+                    and 'relative_add_sym_corrected_m' in r]
+            phases[phase][f'{key}_vs_localised'] = paired_change(
+                [r['relative_add_sym_observed_m'] for r in pair],
+                [r[f'relative_add_sym_{key}_m'] for r in pair],
+                PEG_POSE_NOISE['sigma_translation'])
     out['phases'] = phases
     corr = [r for r in rows if r.get('corrected')]
     out['frames_corrected'] = len(corr)
@@ -933,7 +961,11 @@ def _summary_lines(name: str, result: Dict[str, Any]) -> List[str]:
                 f"{ph['contact_corrected']} corrected): peg ADD-sym relative to the localised "
                 f"block: localised {_fmt(ph['relative_add_sym_observed_mm'])}; after correction "
                 f"{_fmt(ph['relative_add_sym_corrected_mm'])}; fixed-lag "
-                f"{_fmt(ph['relative_add_sym_smoothed_mm'])}")
+                f"{_fmt(ph['relative_add_sym_smoothed_mm'])}; frames better / worse (by more "
+                'than the stated noise): ' + ', '.join(
+                    f"{label} {c['better']} / {c['worse']} ({c['worse_by_more_than_noise']})"
+                    for label, c in (('online', ph['corrected_vs_localised']),
+                                     ('fixed-lag', ph['smoothed_vs_localised']))))
         lines.append(f"max penetration observed {result['max_penetration_observed_mm']:.2f} "
                      f'mm; max contact residual after correction '
                      f"{result['max_contact_residual_after_mm']:.4f} mm; rotation ranks seen "

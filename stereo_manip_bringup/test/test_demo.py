@@ -114,6 +114,22 @@ def test_peg_in_slot_scored_relative_to_the_slot_block_per_phase():
         assert set(f['poses']) == {'peg_in_block_truth', 'peg', 'slot_block', 'peg_corrected'}
     assert r['phases']['on_slot_floor']['relative_add_sym_observed_mm']['median'] == \
         pytest.approx(0.5, rel=1e-6)
+    for phase in r['phases'].values():        # each frame 0.5 mm better, none worse
+        assert phase['corrected_vs_localised'] == {
+            'n': 1, 'better': 1, 'worse': 0, 'worse_by_more_than_noise': 0,
+            'mean_change_mm': pytest.approx(-0.5, rel=1e-6)}
+        assert phase['smoothed_vs_localised']['n'] == 0       # no smoothed pose published
+
+
+def test_paired_change_counts_frames_made_better_and_worse():
+    """A level median with every changed frame better; worse by more than the noise apart."""
+    before = [0.1e-3, 0.2e-3, 0.3e-3, 0.4e-3, 0.5e-3]
+    after = [0.05e-3, 0.2e-3, 0.3e-3, 1.0e-3, 0.5e-3 + 5e-7]
+    c = demo.paired_change(before, after, noise=0.5e-3)
+    assert np.median(after) == np.median(before)
+    assert c == {'n': 5, 'better': 1, 'worse': 1, 'worse_by_more_than_noise': 1,
+                 'mean_change_mm': pytest.approx((0.6e-3 - 0.05e-3 + 5e-7) / 5 * 1000)}
+    assert demo.paired_change([], [], noise=0.5e-3)['n'] == 0
 
 
 def test_live_figures_count_missing_frames_and_latency():
