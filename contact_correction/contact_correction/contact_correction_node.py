@@ -70,7 +70,7 @@ __all__ = ['ContactCorrectionNode', 'main', 'model_path_problem']
 _RECOGNITION_PARAMETERS = ('recognition', 'sigma_translation', 'sigma_rotation',
                            'search_margin', 'free_dof_penalty', 'switch_cost',
                            'transition_cost', 'ambiguity_margin', 'evidence_chi2',
-                           'max_correction_sigma',
+                           'innovation_evidence_chi2', 'max_correction_sigma',
                            'noise_correlation', 'optimal',
                            'tolerance', 'penetration_tolerance', 'angle_tolerance',
                            'max_translation', 'max_rotation', 'check_penetration',
@@ -182,6 +182,11 @@ class ContactCorrectionNode(Node):
             "drop constraints of the temporal model's relation that the frame rejects: a "
             'nested relation fitting better by more than this chi2 (1 constraint; same tail '
             'probability for more) is used; 0: off', 0.0, 1000.0))
+        self.declare_parameter('innovation_evidence_chi2', 6.63, _float(
+            'with noise_correlation > 0, online: drop for a frame the constraints that the '
+            'change since the previous frame rejects at this level (a chi2 as evidence_chi2; '
+            '6.63 = p 0.01: a miss pulls the part back after a release, a false alarm costs '
+            'one frame its correction); 0: off', 0.0, 1000.0))
         self.declare_parameter('max_correction_sigma', 4.0, _float(
             'correction-size guard k: a correction over k sigma_translation or k '
             'sigma_rotation is refused; relations with fewer constraints, then only the '
@@ -189,8 +194,8 @@ class ContactCorrectionNode(Node):
         self.declare_parameter('noise_correlation', 0.0, _float(
             'frame-to-frame correlation (AR(1) rho) of the pose errors: the correct_trajectory '
             "service's temporal model scores a held relation by the innovation of its noise "
-            'estimate; online, a contact the innovation rejects (evidence_chi2) is dropped for '
-            'that frame; 0: independent errors', 0.0, 0.99))
+            'estimate; online, a contact the innovation rejects (innovation_evidence_chi2) is '
+            'dropped for that frame; 0: independent errors', 0.0, 0.99))
         self.declare_parameter('element_margin', 1e-6, _float(
             'largest distance [m] of a corrected contact point outside its element (given / '
             'detected relations; recognised ones use the search margin)', 0.0, 0.05))
@@ -335,6 +340,7 @@ class ContactCorrectionNode(Node):
             transition_cost=g('transition_cost').value,
             ambiguity_margin=g('ambiguity_margin').value,
             evidence_chi2=g('evidence_chi2').value,
+            innovation_evidence_chi2=g('innovation_evidence_chi2').value,
             max_correction_sigma=g('max_correction_sigma').value,
             noise_correlation=g('noise_correlation').value)
 

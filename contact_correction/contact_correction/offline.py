@@ -301,6 +301,10 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
                    help="drop constraints of the temporal model's relation that the frame "
                         'rejects: a nested relation fitting better by more than this chi2 '
                         '(1 constraint; same tail probability for more) is used (0: off)')
+    g.add_argument('--innovation-evidence-chi2', type=float, default=6.63,
+                   help='with --online and --noise-correlation > 0: drop for a frame the '
+                        'constraints the change since the previous frame rejects at this '
+                        'level (a chi2 as --evidence-chi2; 6.63 = p 0.01; 0: off)')
     g.add_argument('--max-correction-sigma', type=float, default=4.0,
                    help='correction-size guard k: a correction over k sigma_translation or k '
                         'sigma_rotation is refused; relations with fewer constraints, then '
@@ -310,7 +314,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
                    help='frame-to-frame correlation of the pose errors (AR(1) rho, [0, 1)): the '
                         'offline temporal model scores a held relation by the innovation of '
                         'its noise estimate (with --online: a contact the innovation rejects '
-                        'at --evidence-chi2 is dropped for that frame; 0: independent errors)')
+                        'at --innovation-evidence-chi2 is dropped for that frame; 0: '
+                        'independent errors)')
     g.add_argument('--tolerance', type=float, default=0.002,
                    help='contact distance of --per-frame-detection [m]')
     g.add_argument('--penetration-tolerance', type=float, default=None,
@@ -338,8 +343,9 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     args = ap.parse_args(argv)
     for name in ('sigma_translation', 'sigma_rotation_deg', 'search_margin', 'free_dof_penalty',
                  'switch_cost', 'transition_cost', 'ambiguity_margin', 'evidence_chi2',
-                 'max_correction_sigma', 'tolerance', 'penetration_tolerance',
-                 'element_margin', 'max_translation', 'max_rotation_deg', 'residual_tolerance'):
+                 'innovation_evidence_chi2', 'max_correction_sigma', 'tolerance',
+                 'penetration_tolerance', 'element_margin', 'max_translation',
+                 'max_rotation_deg', 'residual_tolerance'):
         v = getattr(args, name)
         if v is not None and (not np.isfinite(v) or v < 0):
             ap.error(f'--{name.replace("_", "-")} must be a finite number >= 0, got {v}')
@@ -406,6 +412,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                            transition_cost=args.transition_cost,
                            ambiguity_margin=args.ambiguity_margin,
                            evidence_chi2=args.evidence_chi2,
+                           innovation_evidence_chi2=args.innovation_evidence_chi2,
                            max_correction_sigma=args.max_correction_sigma,
                            noise_correlation=args.noise_correlation)
     relations = [relation] * len(Tm) if relation is not None else None
