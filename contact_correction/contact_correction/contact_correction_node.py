@@ -177,7 +177,9 @@ class ContactCorrectionNode(Node):
         self.declare_parameter('ambiguity_margin', 5.0, _float(
             'at a contact change the evidence does not pin down, enforce only the contacts '
             'common to both relations when the other is within this score margin (online: '
-            'forward costs; correct_trajectory service: min-marginals); 0: off', 0.0, 1000.0))
+            'forward costs; correct_trajectory service: min-marginals); online, a relation with '
+            'more constraints scoring better by over one free DOF penalty within it is taken up '
+            'at once; 0: off', 0.0, 1000.0))
         self.declare_parameter('evidence_chi2', 9.0, _float(
             "drop constraints of the temporal model's relation that the frame rejects: a "
             'nested relation fitting better by more than this chi2 (1 constraint; same tail '

@@ -296,7 +296,9 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     g.add_argument('--ambiguity-margin', type=float, default=5.0,
                    help='at a contact change the evidence does not pin down, enforce only the '
                         'contacts common to both relations when the other is within this '
-                        'score margin (forward costs with --online; 0: off)')
+                        'score margin (forward costs with --online, where a relation with '
+                        'more constraints scoring better by over one free DOF penalty within '
+                        'it is also taken up at once; 0: off)')
     g.add_argument('--evidence-chi2', type=float, default=9.0,
                    help="drop constraints of the temporal model's relation that the frame "
                         'rejects: a nested relation fitting better by more than this chi2 '
