@@ -407,8 +407,8 @@ def summarise(rows: List[dict], quick: bool, seed_base: int = SEED,
                        'offline command (Viterbi), the online node path (corrected_pose) and '
                        'the fixed-lag one (corrected_pose_smoothed). Defaults: evidence_chi2 '
                        '9, innovation_evidence_chi2 6.63 (online), max_correction_sigma 4. '
-                       'Thread CPU times depend on the host: the same code (8d0f47a) measured '
-                       'an online p95 of 3.38 ms on 2026-11-28 00:58 and 5.20 ms at 03:27.')
+                       'Thread CPU times depend on the host: compare runs made on one host '
+                       '(bench/contact_tracks_cpu.py pairs two source trees in one run).')
 
 
 def main() -> None:

@@ -530,11 +530,10 @@ class RelationRecognizer:
         self.cos_tol = float(np.cos(self.angle))
         o = self.options
         self._w = np.array([o.sigma_rotation] * 3 + [o.sigma_translation] * 3)
-        self._evidence = {k: chi2_threshold(o.evidence_chi2, k) if o.evidence_chi2 > 0
-                          else float('inf') for k in range(1, 7)}
-        self._innovation = {k: chi2_threshold(o.innovation_evidence_chi2, k)
-                            if o.innovation_evidence_chi2 > 0 else float('inf')
-                            for k in range(1, 7)}
+        # chi2 decreases that reject 1..6 dropped constraints at each test's level (inf: off)
+        self._evidence, self._innovation = (
+            {k: chi2_threshold(level, k) if level > 0 else float('inf') for k in range(1, 7)}
+            for level in (o.evidence_chi2, o.innovation_evidence_chi2))
         self._plane_tris: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}
         #: the area-contact check is on (``area_contact_check``, offline: set by
         #: :func:`recognise_track` with ``smooth``)
@@ -990,9 +989,7 @@ class RelationTracker:
                 return c
         return h
 
-    def _onset_check(self, h: Hypothesis,
-                     ordered: Sequence[Tuple[State, Tuple[float, Optional[State]]]],
-                     fc: FrameCandidates) -> Hypothesis:
+    def _onset_check(self, h: Hypothesis, fc: FrameCandidates) -> Hypothesis:
         """
         Take a contact up at its first frame when the frame pays for it (online).
 
@@ -1003,17 +1000,17 @@ class RelationTracker:
         output; the best-scoring such relation. The hysteresis alone would enter the new
         contact a frame or two late, the correction enforcing the old relation meanwhile:
         a peg leaving a hole's mouth onto the block's top face, still held against a wall of
-        the hole, was pulled 0.8 mm back (stated noise 0.5 mm). The paths of the temporal
-        model are unchanged.
+        the hole, was pulled back (ADD 0.26 -> 0.85 mm, stated noise 0.5 mm). The paths of the
+        temporal model are unchanged.
 
         :param h: the chosen relation (the end of the least-cost path).
-        :param ordered: this frame's (state, (path cost, previous state)), cheapest first.
-        :param fc: this frame's candidates.
+        :param fc: this frame's candidates (the forward costs, :attr:`_cost`, are this
+            frame's, relative to ``h``'s path).
         """
         rec = self.recognizer
         margin = rec.options.ambiguity_margin
-        rivals = [fc.hypotheses[s] for s, _ in ordered[1:]
-                  if self._cost[s] <= margin and fc.hypotheses[s].rank > h.rank
+        rivals = [fc.hypotheses[s] for s, c in self._cost.items()
+                  if s != h.state and c <= margin and fc.hypotheses[s].rank > h.rank
                   and fc.hypotheses[s].score < h.score - rec.penalty]
         return min(rivals, key=lambda c: c.score) if rivals else h
 
@@ -1140,7 +1137,7 @@ class RelationTracker:
                 # penetrating, pushed out, which may move it along the free directions)
                 h = fc.hypothesis(common)
         if margin > 0 and not keep_history and h.state == best_state:
-            h = self._onset_check(h, ordered, fc)
+            h = self._onset_check(h, fc)
         if h.state in fc.hypotheses:
             h = rec.evidence_check(h)
             if not keep_history:
